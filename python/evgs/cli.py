@@ -1,0 +1,48 @@
+"""The ``evgs`` command line. Each stage's module adds its own subcommands through ``register``."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from evgs import __version__
+
+# Modules that contribute subcommands; each has ``register(subparsers) -> None`` and sets
+# ``func`` on its parsers (a callable taking the parsed namespace, returning an exit code).
+COMMAND_MODULES = [
+    "evgs.events.cli",
+]
+
+
+class UserError(Exception):
+    """An error caused by the user's input: printed as one line, exit code 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="evgs",
+        description="Event-only SLAM with 3D Gaussian Splatting for spacecraft proximity operations.",
+    )
+    parser.add_argument("--version", action="version", version=f"evgs {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (UserError, ValueError, OSError) as e:
+        print(f"evgs: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("evgs: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Data on disk: the canonical sequence layout, trajectory files, and data-set adapters."""

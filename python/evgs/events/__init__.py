@@ -1,0 +1,1 @@
+"""Event streams: reading, writing and describing event files (the Rust core does the decoding)."""

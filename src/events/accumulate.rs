@@ -1,0 +1,1 @@
+//! Event frames: `E = Σ p·C` over index ranges, batched, with optional undistortion.

@@ -1,0 +1,1 @@
+//! File-format detection from content (magic bytes, headers, text sniffing), not only the extension.

@@ -1,0 +1,1 @@
+//! Prophesee EVT 2.0 decoder (32-bit words).

@@ -1,0 +1,1 @@
+//! Prophesee EVT 3.0 decoder (16-bit words, vectorised events).

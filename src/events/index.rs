@@ -1,0 +1,1 @@
+//! Chunk index: frame timestamps → half-open event index ranges.

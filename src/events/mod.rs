@@ -1,0 +1,164 @@
+//! Event streams: the in-memory struct-of-arrays and everything that fills or slices it.
+
+pub mod accumulate;
+pub mod aedat4;
+pub mod detect;
+pub mod evt2;
+pub mod evt3;
+pub mod index;
+pub mod npy;
+pub mod raw_header;
+pub mod text;
+pub mod window;
+
+use crate::error::{Error, Result};
+
+/// A format decoder fed a file's payload in consecutive pieces, so any file decodes in bounded memory.
+pub trait Decoder {
+    /// Decode as much of `data` as possible, appending events to `out`. `data` starts at absolute file
+    /// offset `offset` (for error messages). Returns the number of bytes consumed; the caller keeps the
+    /// unconsumed tail and passes it again at the front of the next piece.
+    fn decode(&mut self, data: &[u8], offset: u64, out: &mut Events) -> Result<usize>;
+
+    /// End of file: `tail` is whatever was never consumed (a truncated record is reported here).
+    fn finish(&mut self, tail: &[u8], offset: u64, out: &mut Events) -> Result<()>;
+}
+
+/// A stream of events as struct-of-arrays. Columns hand to numpy without copying.
+///
+/// Invariants checked by [`Events::validate`]: equal column lengths, `p ∈ {−1, +1}`, coordinates
+/// inside the sensor, and (for the canonical form) `t` non-decreasing.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Events {
+    /// Timestamps in microseconds.
+    pub t: Vec<i64>,
+    pub x: Vec<u16>,
+    pub y: Vec<u16>,
+    /// Polarity, −1 or +1.
+    pub p: Vec<i8>,
+    /// Sensor width and height in pixels; 0 when unknown.
+    pub width: u32,
+    pub height: u32,
+}
+
+impl Events {
+    pub fn with_capacity(n: usize, width: u32, height: u32) -> Self {
+        Events {
+            t: Vec::with_capacity(n),
+            x: Vec::with_capacity(n),
+            y: Vec::with_capacity(n),
+            p: Vec::with_capacity(n),
+            width,
+            height,
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.t.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.t.is_empty()
+    }
+
+    #[inline]
+    pub fn push(&mut self, t: i64, x: u16, y: u16, p: i8) {
+        self.t.push(t);
+        self.x.push(x);
+        self.y.push(y);
+        self.p.push(p);
+    }
+
+    /// Append all events of `other` (sensor size taken as the larger of the two).
+    pub fn extend(&mut self, other: &Events) {
+        self.t.extend_from_slice(&other.t);
+        self.x.extend_from_slice(&other.x);
+        self.y.extend_from_slice(&other.y);
+        self.p.extend_from_slice(&other.p);
+        self.width = self.width.max(other.width);
+        self.height = self.height.max(other.height);
+    }
+
+    /// Borrow the columns as a view (what the algorithms take, so numpy arrays can be used directly).
+    pub fn view(&self) -> EventsView<'_> {
+        EventsView { t: &self.t, x: &self.x, y: &self.y, p: &self.p, width: self.width, height: self.height }
+    }
+
+    /// See [`EventsView::validate`].
+    pub fn validate(&self, source: &str) -> Result<()> {
+        self.view().validate(source)
+    }
+}
+
+/// Borrowed event columns: an [`Events`] or four numpy arrays seen from Rust without copying.
+#[derive(Debug, Clone, Copy)]
+pub struct EventsView<'a> {
+    pub t: &'a [i64],
+    pub x: &'a [u16],
+    pub y: &'a [u16],
+    pub p: &'a [i8],
+    pub width: u32,
+    pub height: u32,
+}
+
+impl EventsView<'_> {
+    pub fn len(&self) -> usize {
+        self.t.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.t.is_empty()
+    }
+
+    /// Whether timestamps are non-decreasing.
+    pub fn is_sorted(&self) -> bool {
+        self.t.windows(2).all(|w| w[0] <= w[1])
+    }
+
+    /// Check the invariants; `source` names the data in the error message.
+    pub fn validate(&self, source: &str) -> Result<()> {
+        let n = self.t.len();
+        if self.x.len() != n || self.y.len() != n || self.p.len() != n {
+            return Err(Error::Invalid(format!("{source}: event columns have different lengths")));
+        }
+        for i in 0..n {
+            if self.p[i] != 1 && self.p[i] != -1 {
+                return Err(Error::format(
+                    source,
+                    format!("event {i}"),
+                    format!("polarity {} is not ±1", self.p[i]),
+                ));
+            }
+            if (self.width > 0 && u32::from(self.x[i]) >= self.width)
+                || (self.height > 0 && u32::from(self.y[i]) >= self.height)
+            {
+                return Err(Error::format(
+                    source,
+                    format!("event {i}"),
+                    format!(
+                        "({}, {}) outside the {}x{} sensor",
+                        self.x[i], self.y[i], self.width, self.height
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn validate_catches_bad_polarity_and_coordinates() {
+        let mut ev = Events::with_capacity(2, 4, 4);
+        ev.push(0, 1, 1, 1);
+        assert!(ev.validate("mem").is_ok());
+        ev.push(1, 4, 0, 1);
+        assert!(ev.validate("mem").unwrap_err().to_string().contains("event 1"));
+        ev.x[1] = 0;
+        ev.p[1] = 0;
+        assert!(ev.validate("mem").unwrap_err().to_string().contains("polarity"));
+    }
+}

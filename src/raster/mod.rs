@@ -1,0 +1,1 @@
+//! The multithreaded CPU Gaussian rasterizer (forward and analytic backward), gsplat semantics.

@@ -1,0 +1,1 @@
+//! Event simulation (ESIM semantics) from a stream of log-intensity frames.

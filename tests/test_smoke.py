@@ -1,0 +1,29 @@
+"""The package imports, the extension loads, and the CLI answers."""
+
+import subprocess
+import sys
+
+import evgs
+import numpy as np
+import pytest
+from evgs import _core
+
+
+def test_version_matches_extension():
+    assert evgs.__version__ == _core.__version__
+
+
+def test_validate_events_names_source_and_index():
+    t = np.arange(3, dtype=np.int64)
+    x = np.array([0, 1, 9], dtype=np.uint16)
+    y = np.zeros(3, dtype=np.uint16)
+    p = np.ones(3, dtype=np.int8)
+    with pytest.raises(ValueError, match=r"mem: event 2: \(9, 0\) outside the 4x4 sensor"):
+        _core.validate_events(t, x, y, p, 4, 4, "mem")
+
+
+def test_cli_help():
+    out = subprocess.run(
+        [sys.executable, "-m", "evgs.cli", "--help"], capture_output=True, text=True, check=True
+    )
+    assert "events" in out.stdout
