@@ -29,8 +29,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--csv", type=Path, metavar="OUT", help="write the comparison table as CSV")
     p.add_argument("--export-tum", type=Path, metavar="DIR", help="export GT and aligned estimate (TUM)")
     p.add_argument("--export-kitti", type=Path, metavar="DIR", help="export GT and aligned estimate (KITTI)")
-    p.add_argument("--elope-submission", type=Path, metavar="OUT",
-                   help="write the ELOPE challenge JSON (velocities of the aligned estimates)")  # fmt: skip
+    p.add_argument(
+        "--elope-submission",
+        type=Path,
+        metavar="OUT",
+        help="write the ELOPE challenge JSON (aligned-estimate velocities of the ELOPE runs)",
+    )
     p.add_argument("--no-images", action="store_true", help="skip rendering and image metrics")
     p.add_argument("--no-report", action="store_true", help="metrics only: no figures or reports")
     p.add_argument("--se3", action="store_true", help="align with SE(3) instead of Sim(3) (scale fixed to 1)")
@@ -84,6 +88,10 @@ def run(args: argparse.Namespace) -> int:
     if args.elope_submission is not None:
         write_submission(
             args.elope_submission,
-            {sequence_id(ev.sequence.name): submission_velocities(ev.assoc.t, ev.traj.p_est) for ev in evals},
+            {
+                sequence_id(ev.sequence.name): submission_velocities(ev.assoc.t, ev.traj.p_est)
+                for ev in evals
+                if ev.elope_score is not None
+            },
         )
     return 0

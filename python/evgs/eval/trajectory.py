@@ -30,6 +30,8 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
     ``acos((tr R − 1) / 2)`` loses half the digits near 0 and π; the equivalent
     ``atan2(‖vee(R − Rᵀ)‖ / 2, (tr R − 1) / 2)`` is accurate over the whole range.
     """
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"rotation_angle: expected (…, 3, 3) rotations, got {R.shape}")
     c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
     v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
     return np.arctan2(np.linalg.norm(v, axis=-1) / 2.0, c)
@@ -93,7 +95,13 @@ def rpe(T_gt: np.ndarray, T_est: np.ndarray, delta: float = 1, unit: str = "fram
     rel_gt = invert_pose(T_gt[i]) @ T_gt[j]
     rel_est = invert_pose(T_est[i]) @ T_est[j]
     E = invert_pose(rel_gt) @ rel_est
-    return RPE(float(delta), unit, pairs, np.linalg.norm(E[:, :3, 3], axis=1), np.degrees(rotation_angle(E)))
+    return RPE(
+        float(delta),
+        unit,
+        pairs,
+        np.linalg.norm(E[:, :3, 3], axis=1),
+        np.degrees(rotation_angle(E[:, :3, :3])),
+    )
 
 
 @dataclass(frozen=True)
