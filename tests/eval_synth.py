@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import tomli_w
-from evgs.data.sequence import Camera, write_sequence
+from evgs.data.sequence import Camera, Sequence, write_sequence
 from evgs.data.tum import write_tum
 from evgs.eval.align import Sim3
 from evgs.events.arrays import EventArray
@@ -42,34 +42,49 @@ def perturb(T: np.ndarray, sim3: Sim3, rng: np.random.Generator, *, pos_sigma: f
     return sim3.inverse().apply_poses(noisy)
 
 
-def write_fake_run(
+def write_fake_sequence(
+    root: Path,
+    name: str,
+    T_gt: np.ndarray,
+    images: np.ndarray,
+    *,
+    focal: float = 40.0,
+    source: str = "synthetic",
+) -> Sequence:
+    """A sequence folder with GT poses and images at frames 50 ms apart (one dummy event)."""
+    n, size = len(T_gt), images.shape[-1]
+    frames_us = 1_000_000 + np.arange(n, dtype=np.int64) * 50_000
+    zero = np.zeros(1, np.uint16)
+    ev = EventArray(frames_us[:1], zero, zero, np.ones(1, np.int8), size, size)
+    return write_sequence(
+        root / "seqs" / name, name, Camera(size, size, focal, focal, size / 2, size / 2), ev, frames_us,
+        poses_gt=(frames_us, T_gt), images=images, meta={"source": source},
+    )  # fmt: skip
+
+
+def write_fake_run(root: Path, seq: Sequence, T_est: np.ndarray) -> Path:
+    """``runs/<seq>/<timestamp>/`` with config.toml and traj_est.txt at the sequence's frame times."""
+    run = root / "runs" / seq.name / "20260101-000000"
+    run.mkdir(parents=True)
+    (run / "config.toml").write_text(tomli_w.dumps({"seq": str(seq.root), "batch_size": 1}))
+    write_tum(run / "traj_est.txt", seq.frames_us() / 1e6, T_est)
+    return run
+
+
+def fake_run(
     root: Path,
     name: str,
     rng: np.random.Generator,
     *,
     n: int = 30,
-    size: int = 48,
     source: str = "synthetic",
     z_offset: float = 0.0,
 ) -> Path:
-    """A sequence folder (GT poses at frame times, GT images) and a run directory ``runs/<name>/<ts>``
-    whose estimate is the GT seen through a random Sim(3), with noise. Returns the run directory."""
-    frames_us = 1_000_000 + np.arange(n, dtype=np.int64) * 50_000
+    """A sequence (orbit GT, smooth 48×48 images) and a run whose estimate is the GT seen through a random
+    Sim(3), with 1 cm / 0.01 rad noise. Returns the run directory."""
     T_gt = orbit(n, rng)
     T_gt[:, 2, 3] += z_offset
-    one = np.ones(1)
-    ev = EventArray(
-        frames_us[:1], 0 * one.astype(np.uint16), 0 * one.astype(np.uint16), one.astype(np.int8), size, size
-    )
-    yy, xx = np.mgrid[0:size, 0:size] / size
+    yy, xx = np.mgrid[0:48, 0:48] / 48
     images = np.stack([0.5 + 0.4 * np.sin(6 * xx + 0.2 * i) * np.cos(5 * yy) for i in range(n)])
-    seq = write_sequence(
-        root / "seqs" / name, name, Camera(size, size, 40.0, 40.0, size / 2, size / 2), ev, frames_us,
-        poses_gt=(frames_us, T_gt), images=images, meta={"source": source},
-    )  # fmt: skip
-    run = root / "runs" / name / "20260101-000000"
-    run.mkdir(parents=True)
-    (run / "config.toml").write_text(tomli_w.dumps({"seq": str(seq.root), "batch_size": 1}))
-    T_est = perturb(T_gt, random_sim3(rng), rng, pos_sigma=0.01, rot_sigma=0.01)
-    write_tum(run / "traj_est.txt", frames_us / 1e6, T_est)
-    return run
+    seq = write_fake_sequence(root, name, T_gt, images, source=source)
+    return write_fake_run(root, seq, perturb(T_gt, random_sim3(rng), rng, pos_sigma=0.01, rot_sigma=0.01))

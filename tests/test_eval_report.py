@@ -5,7 +5,7 @@ import json
 import numpy as np
 import polars as pl
 import pytest
-from eval_synth import write_fake_run
+from eval_synth import fake_run
 from evgs.cli import main
 from evgs.data.tum import read_tum
 from evgs.eval.plots import plot_run
@@ -18,8 +18,8 @@ def runs(tmp_path_factory):
     root = tmp_path_factory.mktemp("runs")
     rng = np.random.default_rng(7)
     return [
-        write_fake_run(root, "orbit_a", rng),
-        write_fake_run(root, "elope_0003", rng, source="ELOPE", z_offset=-50.0),
+        fake_run(root, "orbit_a", rng),
+        fake_run(root, "elope_0003", rng, source="ELOPE", z_offset=-50.0),
     ]
 
 
