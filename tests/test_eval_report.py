@@ -84,3 +84,15 @@ def test_cli_several_runs_table_csv_exports(runs, tmp_path, capsys):
 def test_cli_reports_bad_run_dir(tmp_path, capsys):
     assert main(["eval", str(tmp_path)]) == 2
     assert "no config.toml" in capsys.readouterr().err
+
+
+def test_unsorted_estimate_is_rejected_with_file_and_pose(runs, tmp_path):
+    import shutil
+
+    run = tmp_path / "r" / "x"
+    shutil.copytree(runs[0], run)
+    lines = (run / "traj_est.txt").read_text().splitlines()
+    lines[3], lines[4] = lines[4], lines[3]  # poses 3 and 4 (after the header line) swapped
+    (run / "traj_est.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match=r"traj_est.txt: pose 4: timestamps must be strictly increasing"):
+        evaluate_run(run, images=False)

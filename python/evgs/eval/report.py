@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import base64
 import html
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -120,7 +119,8 @@ def build_blocks(ev: RunEvaluation, figures: dict[str, Path]) -> list[Block]:
 
 
 def _settings_text(ev: RunEvaluation) -> str:
-    return json.dumps(ev.config, indent=1, default=str)
+    """The run's resolved configuration, verbatim."""
+    return (ev.run_dir / "config.toml").read_text().strip()
 
 
 def _diagnostics(ev: RunEvaluation) -> list[Block]:
@@ -159,7 +159,7 @@ def to_markdown(blocks: list[Block], base: Path) -> str:
             elif kind == "li":
                 out.append(f"- {text}")
             elif kind == "pre":
-                out += ["```json", text, "```", ""]
+                out += ["```toml", text, "```", ""]
             else:
                 out += [text, ""]
     return "\n".join(out) + "\n"

@@ -95,6 +95,12 @@ def frame_indices(t_s: np.ndarray, frames_us: np.ndarray) -> np.ndarray:
     return np.where(np.abs(frames_us[best] - t_us) <= 1, best, -1)
 
 
+def _check_increasing(t: np.ndarray, path: Path) -> None:
+    bad = np.flatnonzero(np.diff(t) <= 0)
+    if bad.size:
+        raise ValueError(f"{path}: pose {bad[0] + 2}: timestamps must be strictly increasing")
+
+
 def is_elope(seq: Sequence) -> bool:
     return "elope" in str(seq.meta.get("source", "")).lower()
 
@@ -119,6 +125,8 @@ def evaluate_run(
     if not traj_path.is_file():
         raise FileNotFoundError(f"{run_dir}: no traj_est.txt")
     t_est, T_est = read_tum(traj_path)
+    _check_increasing(t_est, traj_path)
+    _check_increasing(gt[0], seq.root / "poses_gt.txt")
     assoc = associate(t_est, T_est, gt[0] / 1e6, gt[1])
     ev = RunEvaluation(
         run_dir=run_dir,
