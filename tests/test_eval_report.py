@@ -81,9 +81,13 @@ def test_cli_several_runs_table_csv_exports(runs, tmp_path, capsys):
     assert list(doc) == ["3"] and len(doc["3"]["vz"]) == 30  # only the ELOPE run, one value per pose
 
 
-def test_cli_reports_bad_run_dir(tmp_path, capsys):
+def test_cli_reports_bad_input(runs, tmp_path, capsys):
     assert main(["eval", str(tmp_path)]) == 2
     assert "no config.toml" in capsys.readouterr().err
+    sub = tmp_path / "sub.json"
+    assert main(["eval", str(runs[0]), "--no-report", "--elope-submission", str(sub)]) == 2
+    assert "none of the runs is an ELOPE run" in capsys.readouterr().err
+    assert not sub.exists()
 
 
 def test_unsorted_estimate_is_rejected_with_file_and_pose(runs, tmp_path):

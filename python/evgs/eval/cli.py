@@ -33,7 +33,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--elope-submission",
         type=Path,
         metavar="OUT",
-        help="write the ELOPE challenge JSON (aligned-estimate velocities of the ELOPE runs)",
+        help="write the ELOPE challenge JSON for the ELOPE runs (velocities of the Sim(3)-aligned "
+        "estimate, so ground truth is needed, as in the paper)",
     )
     p.add_argument("--no-images", action="store_true", help="skip rendering and image metrics")
     p.add_argument("--no-report", action="store_true", help="metrics only: no figures or reports")
@@ -47,7 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="compute the ELOPE score (default: only for sequences whose source is ELOPE)",
     )
-    elope.add_argument("--no-elope", dest="elope", action="store_false")  # fmt: skip
+    elope.add_argument("--no-elope", dest="elope", action="store_false")
     p.set_defaults(func=run)
 
 
@@ -86,12 +87,12 @@ def run(args: argparse.Namespace) -> int:
         with atomic_path(args.csv) as tmp:
             table.write_csv(tmp)
     if args.elope_submission is not None:
-        write_submission(
-            args.elope_submission,
-            {
-                sequence_id(ev.sequence.name): submission_velocities(ev.assoc.t, ev.traj.p_est)
-                for ev in evals
-                if ev.elope_score is not None
-            },
-        )
+        entries = {
+            sequence_id(ev.sequence.name): submission_velocities(ev.assoc.t, ev.traj.p_est)
+            for ev in evals
+            if ev.elope_score is not None
+        }
+        if not entries:
+            raise ValueError("--elope-submission: none of the runs is an ELOPE run (use --elope to force)")
+        write_submission(args.elope_submission, entries)
     return 0
