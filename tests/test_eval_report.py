@@ -41,6 +41,7 @@ def test_frame_indices():
 
 def test_figures_and_self_contained_html(runs, tmp_path):
     ev = evaluate_run(runs[0], images=False)
+    (runs[0] / "metrics.json").write_text(json.dumps({"frames_tracked": 30, "loss": 0.125, "curve": [1, 2]}))
     figs = plot_run(ev, tmp_path / "eval")
     assert set(figs) == {"trajectory", "translation", "rpy", "orientation_error", "velocity"}
     for p in figs.values():
@@ -49,6 +50,7 @@ def test_figures_and_self_contained_html(runs, tmp_path):
     text = md.read_text()
     assert "| Sequence | Frames | RMSE | Drift | PSNR | LPIPS |" in text
     assert "](eval/trajectory_3d.png)" in text
+    assert "| frames_tracked | 30 |" in text and "| loss | 0.125 |" in text and "curve" not in text
     html = page.read_text()
     assert html.count("src='data:image/png;base64,") == 5
     assert "http" not in html and "<link" not in html and "src='eval/" not in html

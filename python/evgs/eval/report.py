@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import base64
 import html
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -132,13 +133,28 @@ def _diagnostics(ev: RunEvaluation) -> list[Block]:
         "SSIM: Gaussian window σ = 1.5, 11×11; LPIPS: AlexNet, v0.1 linear heads; PSNR peak 1.0",
     ]
     items += ev.notes
-    slam_metrics = ev.run_dir / "metrics.json"
-    if slam_metrics.is_file():
-        items.append(f"pipeline metrics: {slam_metrics.name}")
     diag = ev.run_dir / "diagnostics"
     if diag.is_dir():
         items += [f"diagnostics file: diagnostics/{p.name}" for p in sorted(diag.iterdir())]
-    return [("li", s) for s in items]
+    blocks: list[Block] = [("li", s) for s in items]
+    scalars = _pipeline_scalars(ev.run_dir / "metrics.json")
+    if scalars:
+        blocks += [("p", "Pipeline metrics (metrics.json):"), Table(["Key", "Value"], scalars)]
+    return blocks
+
+
+def _pipeline_scalars(path: Path) -> list[list[str]]:
+    """Top-level numbers and strings of the pipeline's own metrics.json (nested data is left out)."""
+    if not path.is_file():
+        return []
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        return [["(unreadable)", f"{path.name}: line {e.lineno}: {e.msg}"]]
+    if not isinstance(doc, dict):
+        return []
+    return [[k, f"{v:.6g}" if isinstance(v, float) else str(v)] for k, v in doc.items()
+            if isinstance(v, (int, float, str, bool))]  # fmt: skip
 
 
 def to_markdown(blocks: list[Block], base: Path) -> str:
