@@ -7,7 +7,6 @@ from pathlib import Path
 
 import pytest
 import tomllib
-
 from evgs.config import (
     CONFIG_DIR,
     DEFAULT_CONFIG,
