@@ -164,3 +164,12 @@ def test_save_round_trip(tmp_path: Path):
     doc["loss"]["bogus"] = 1
     with pytest.raises(ConfigError, match="loss.bogus"):
         config_from_dict(doc, "snapshot")
+
+
+def test_range_checks_name_the_keys():
+    with pytest.raises(ConfigError, match="min_n_winsize <= data.max_n_winsize"):
+        load_config(overrides=["data.min_n_winsize=200000"])
+    with pytest.raises(ConfigError) as e:
+        load_config(overrides=["gaussians.init_opacity=1.0", "strategy.refine_every=0"])
+    assert "gaussians.init_opacity must be in (0, 1)" in str(e.value)
+    assert "strategy.refine_every must be > 0" in str(e.value)

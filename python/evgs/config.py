@@ -222,6 +222,30 @@ def _build(cls: type, doc: Mapping[str, Any], source: str, prefix: str = "") -> 
     return cls(**kwargs)
 
 
+def _check_ranges(cfg: Config, source: str) -> None:
+    """Relations a single type check cannot see; each message names the offending keys."""
+    problems = []
+    d, g, s = cfg.data, cfg.gaussians, cfg.strategy
+    if not 0 < d.min_n_winsize <= d.max_n_winsize:
+        problems.append("need 0 < data.min_n_winsize <= data.max_n_winsize")
+    for key, value in [("gaussians.init_opacity", g.init_opacity), ("strategy.reset_opacity", s.reset_opacity)]:
+        if not 0 < value < 1:
+            problems.append(f"{key} must be in (0, 1)")
+    if not 0 <= cfg.loss.lambda_ssim <= 1:
+        problems.append("loss.lambda_ssim must be in [0, 1]")
+    positive = {
+        "data.training_batch_size": d.training_batch_size,
+        "init.num_frames": cfg.init.num_frames,
+        "gaussians.num_init": g.num_init,
+        "gaussians.bounding_size": g.bounding_size,
+        "strategy.refine_every": s.refine_every,
+        "mapping.window": cfg.mapping.window,
+    }
+    problems += [f"{key} must be > 0" for key, value in positive.items() if value <= 0]
+    if problems:
+        raise ConfigError(f"{source}: " + "; ".join(problems))
+
+
 def _read_chain(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     """Read ``path`` and its ancestors, validating each file on its own so errors name the right file."""
     path = path.resolve()
@@ -306,12 +330,16 @@ def load_config(path: str | Path = DEFAULT_CONFIG, overrides: Iterable[str] = ()
     doc = _read_chain(path)
     for item in overrides:
         doc = _apply_override(doc, item)
-    return _build(Config, doc, str(path))
+    cfg = _build(Config, doc, str(path))
+    _check_ranges(cfg, str(path))
+    return cfg
 
 
 def config_from_dict(doc: Mapping[str, Any], source: str = "config") -> Config:
     """A complete config from a plain dict (e.g. a run's ``config.toml`` snapshot)."""
-    return _build(Config, _validate(doc, Config, source), source)
+    cfg = _build(Config, _validate(doc, Config, source), source)
+    _check_ranges(cfg, source)
+    return cfg
 
 
 def save_config(config: Config, path: str | Path) -> None:
