@@ -8,6 +8,7 @@ Unknown keys and ill-typed values are rejected with the file, the key and the cl
 
 from __future__ import annotations
 
+import argparse
 import difflib
 import typing
 from collections.abc import Iterable, Mapping
@@ -228,7 +229,10 @@ def _check_ranges(cfg: Config, source: str) -> None:
     d, g, s = cfg.data, cfg.gaussians, cfg.strategy
     if not 0 < d.min_n_winsize <= d.max_n_winsize:
         problems.append("need 0 < data.min_n_winsize <= data.max_n_winsize")
-    for key, value in [("gaussians.init_opacity", g.init_opacity), ("strategy.reset_opacity", s.reset_opacity)]:
+    for key, value in [
+        ("gaussians.init_opacity", g.init_opacity),
+        ("strategy.reset_opacity", s.reset_opacity),
+    ]:
         if not 0 < value < 1:
             problems.append(f"{key} must be in (0, 1)")
     if not 0 <= cfg.loss.lambda_ssim <= 1:
@@ -335,6 +339,28 @@ def load_config(path: str | Path = DEFAULT_CONFIG, overrides: Iterable[str] = ()
     return cfg
 
 
+def add_config_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--config NAME|FILE`` and repeatable ``--set KEY=VALUE`` for commands that take a config."""
+    parser.add_argument(
+        "--config",
+        default=None,
+        metavar="NAME|FILE",
+        help="config file, or a name under configs/ such as synthetic/orbit_ambient (default: default.toml)",
+    )
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override one key, e.g. --set loss.lambda_ssim=0.05 (repeatable)",
+    )
+
+
+def config_from_args(args: argparse.Namespace) -> Config:
+    return load_config(args.config or DEFAULT_CONFIG, args.overrides)
+
+
 def config_from_dict(doc: Mapping[str, Any], source: str = "config") -> Config:
     """A complete config from a plain dict (e.g. a run's ``config.toml`` snapshot)."""
     cfg = _build(Config, _validate(doc, Config, source), source)
@@ -353,6 +379,8 @@ __all__ = [
     "DEFAULT_CONFIG",
     "Config",
     "ConfigError",
+    "add_config_arguments",
+    "config_from_args",
     "config_from_dict",
     "load_config",
     "resolve_config_path",
