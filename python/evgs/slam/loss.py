@@ -1,0 +1,124 @@
+"""The event loss (paper eq. 8–11) on batches of rendered gray images (B, H, W) in [0, 1].
+
+``Ê = L(Î_end) − L(Î_start)`` with ``L = log(I + eps)`` (paper eq. 9) or the reference's
+``linlog(255·I)``; ``L = (1−λ)·L_event(E, Ê) + λ·(1 − SSIM(Î_start, Î_end))``, with ``L_event`` the L1
+(paper eq. 10) or squared (reference code) error, averaged over the valid pixels.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from evgs.config import LossConfig
+
+
+def linlog(x: Tensor, threshold: float = 20.0) -> Tensor:
+    """``ln x`` above ``threshold``, the line through the origin meeting it (``x·ln(t)/t``) below.
+
+    Keeps the log response finite and bounded in slope on the black background.
+    """
+    safe = torch.clamp(x, min=threshold)  # the log branch never sees small values (nor their gradient)
+    return torch.where(x < threshold, x * (math.log(threshold) / threshold), torch.log(safe))
+
+
+def log_intensity(img: Tensor, cfg: LossConfig) -> Tensor:
+    if cfg.log_mode == "log":
+        return torch.log(img + cfg.log_eps)
+    return linlog(255.0 * img, cfg.linlog_threshold)
+
+
+def predicted_events(start: Tensor, end: Tensor, cfg: LossConfig) -> Tensor:
+    """``Ê``: the log-intensity change between two renders of the same shape."""
+    return log_intensity(end, cfg) - log_intensity(start, cfg)
+
+
+def _gaussian_kernel(size: int, sigma: float, dtype: torch.dtype) -> Tensor:
+    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
+    k = torch.exp(-(x**2) / (2 * sigma**2))
+    return (k / k.sum()).to(dtype)
+
+
+def ssim(a: Tensor, b: Tensor, window: int = 11, sigma: float = 1.5, data_range: float = 1.0) -> Tensor:
+    """Mean SSIM per image of (B, H, W) batches, Gaussian-weighted, population (co)variances.
+
+    Only windows that lie wholly inside the image count (a "valid" convolution): no padding values
+    leak into the statistics. This equals scikit-image's ``structural_similarity(gaussian_weights=True,
+    sigma=σ, use_sample_covariance=False)``, which crops the same border before averaging.
+    """
+    if a.shape != b.shape or a.ndim != 3:
+        raise ValueError(
+            f"ssim: need two (B, H, W) tensors of one shape, got {tuple(a.shape)}, {tuple(b.shape)}"
+        )
+    if min(a.shape[-2:]) < window:
+        raise ValueError(f"ssim: images {tuple(a.shape[-2:])} are smaller than the {window}-px window")
+    k = _gaussian_kernel(window, sigma, a.dtype).to(a.device)
+    x = torch.stack([a, b, a * a, b * b, a * b], 1).reshape(-1, 1, *a.shape[-2:])
+    x = F.conv2d(x, k.view(1, 1, 1, -1))
+    x = F.conv2d(x, k.view(1, 1, -1, 1))
+    mu_a, mu_b, aa, bb, ab = x.reshape(a.shape[0], 5, *x.shape[-2:]).unbind(1)
+    var_a, var_b, cov = aa - mu_a**2, bb - mu_b**2, ab - mu_a * mu_b
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
+    return s.mean(dim=(-2, -1))
+
+
+def valid_mask(
+    alpha_start: Tensor, alpha_end: Tensor, border: int = 0, min_alpha: float | None = None
+) -> Tensor:
+    """(B, H, W) bool: the reference tracking's mask — no ``border``-px frame, and (if ``min_alpha``)
+    only pixels whose rendered alpha exceeds ``min_alpha`` at both ends of the window."""
+    mask = torch.ones_like(alpha_start, dtype=torch.bool)
+    if border > 0:
+        mask[..., :border, :] = False
+        mask[..., -border:, :] = False
+        mask[..., :, :border] = False
+        mask[..., :, -border:] = False
+    if min_alpha is not None:
+        mask &= (alpha_start > min_alpha) & (alpha_end > min_alpha)
+    return mask
+
+
+def event_mask(events: Tensor, threshold: float) -> Tensor:
+    """Pixels whose accumulated event value exceeds ``threshold`` in magnitude."""
+    return events.abs() > threshold
+
+
+@dataclass(frozen=True)
+class LossTerms:
+    total: Tensor
+    event: Tensor
+    ssim: Tensor  # the SSIM term ``1 − SSIM``, averaged over the batch
+
+
+def event_loss(
+    events: Tensor, start: Tensor, end: Tensor, cfg: LossConfig, mask: Tensor | None = None
+) -> LossTerms:
+    """Eq. 8: ``(1−λ)·L_event + λ·(1 − SSIM(start, end))``.
+
+    ``events`` is the measured event frame ``E`` (B, H, W); ``start``/``end`` the renders. ``mask``
+    (B, H, W) bool selects the pixels of the event term (None = all); ``cfg.event_mask_threshold ≥ 0``
+    further restricts it to pixels with events. A batch with no valid pixel gives a zero event term.
+    """
+    if not (events.shape == start.shape == end.shape) or events.ndim != 3:
+        raise ValueError(
+            f"event_loss: events/start/end must be (B, H, W) of one shape, got "
+            f"{tuple(events.shape)}, {tuple(start.shape)}, {tuple(end.shape)}"
+        )
+    diff = events - predicted_events(start, end, cfg)
+    err = diff.abs() if cfg.event_loss == "l1" else diff * diff
+    if cfg.event_mask_threshold >= 0:
+        m = event_mask(events, cfg.event_mask_threshold)
+        mask = m if mask is None else mask & m
+    if mask is None:
+        l_event = err.mean()
+    else:
+        w = mask.to(err.dtype)
+        l_event = (err * w).sum() / w.sum().clamp(min=1.0)
+    l_ssim = (1 - ssim(start, end, cfg.ssim_window, cfg.ssim_sigma)).mean()
+    lam = cfg.lambda_ssim
+    return LossTerms((1 - lam) * l_event + lam * l_ssim, l_event, l_ssim)

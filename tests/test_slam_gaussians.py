@@ -1,0 +1,141 @@
+"""Gaussian parameters: random init and the 3DGS PLY layout."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from evgs.config import load_config
+from evgs.slam.gaussians import (
+    PARAM_NAMES,
+    SH_C0,
+    Gaussians,
+    knn_log_scale,
+    load_ply,
+    make_optimizer,
+    quat_to_rotmat,
+    save_ply,
+)
+from scipy.spatial.transform import Rotation
+
+
+def small(n: int = 50, seed: int = 0) -> Gaussians:
+    g = Gaussians.random(n, 2.0, 0.1, 0.05, torch.Generator().manual_seed(seed))
+    with torch.no_grad():  # make every attribute distinct so a swapped column would show
+        gen = torch.Generator().manual_seed(seed + 1)
+        for p in g.params.values():
+            p.add_(torch.randn(p.shape, generator=gen) * 0.1)
+    return g
+
+
+def test_random_init_inside_box_seeded_and_dim():
+    a = Gaussians.random(1000, 3.0, 0.1, 0.05, torch.Generator().manual_seed(4))
+    b = Gaussians.random(1000, 3.0, 0.1, 0.05, torch.Generator().manual_seed(4))
+    assert all(torch.equal(a[k], b[k]) for k in PARAM_NAMES)
+    assert a["means"].abs().max() <= 3.0 and a["means"].abs().max() > 2.5
+    assert torch.allclose(a.opacities(), torch.full((1000,), 0.1))
+    assert torch.all(a["colors"] == 0.05)
+    assert torch.equal(a["quats"], torch.tensor([[1.0, 0, 0, 0]]).expand(1000, 4))
+    assert torch.equal(a["log_scales"][:, 0], a["log_scales"][:, 2])  # isotropic
+
+
+def test_knn_scale_on_a_grid():
+    g = np.stack(np.meshgrid(*[np.arange(5.0)] * 3, indexing="ij"), -1).reshape(-1, 3) * 0.5
+    s = np.exp(knn_log_scale(g))
+    centre = np.all((g > 0) & (g < 2.0), axis=1)  # interior points: 3 neighbours at spacing 0.5
+    assert np.allclose(s[centre], 0.5)
+
+
+def test_from_config_uses_the_configured_values():
+    cfg = load_config(overrides=["gaussians.num_init=64"]).gaussians
+    g = Gaussians.from_config(cfg, torch.Generator().manual_seed(0))
+    assert len(g) == 64 and g["colors"][0, 0] == cfg.init_color
+
+
+def test_optimizer_groups_are_named_with_scaled_means_lr():
+    cfg = load_config().gaussians
+    g = small()
+    opt = make_optimizer(g, cfg, scene_scale=2.0)
+    lrs = {grp["name"]: grp["lr"] for grp in opt.param_groups}
+    assert lrs["means"] == pytest.approx(cfg.means_lr * 2.0) and lrs["colors"] == cfg.colors_lr
+    assert opt.defaults["eps"] == cfg.adam_eps
+
+
+def test_quat_to_rotmat_matches_scipy():
+    q = torch.randn(20, 4, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    ref = Rotation.from_quat(q[:, [1, 2, 3, 0]].numpy()).as_matrix()  # scipy: (x, y, z, w)
+    assert np.allclose(quat_to_rotmat(q).numpy(), ref, atol=1e-12)
+
+
+def test_ply_round_trip_and_layout(tmp_path: Path):
+    g = small()
+    path = tmp_path / "out" / "gaussians.ply"
+    save_ply(path, g)
+    back = load_ply(path)
+    for k in PARAM_NAMES:
+        assert torch.allclose(back[k], g[k], atol=1e-6), k
+    data = path.read_bytes()
+    header = data[: data.index(b"end_header\n")].decode()
+    props = [line.split()[-1] for line in header.splitlines() if line.startswith("property")]
+    assert props[:10] == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
+    assert props[10:] == ["scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    assert "binary_little_endian 1.0" in header and f"element vertex {len(g)}" in header
+    rec = np.frombuffer(data[len(header) + len("end_header\n") :], dtype=[(p, "<f4") for p in props])
+    assert np.allclose(0.5 + SH_C0 * rec["f_dc_1"], g["colors"].detach().numpy()[:, 0], atol=1e-6)
+    assert np.allclose(rec["rot_0"], g["quats"].detach().numpy()[:, 0])  # w first
+    assert not list(tmp_path.glob("out/.*"))  # no temporary left behind
+
+
+def test_ply_reader_accepts_other_property_orders_and_types(tmp_path: Path):
+    n = 3
+    props = [("rot_0", "<f4"), ("rot_1", "<f4"), ("rot_2", "<f4"), ("rot_3", "<f4"), ("x", "<f8")]
+    props += [("y", "<f8"), ("z", "<f8"), ("f_dc_0", "<f4"), ("f_dc_1", "<f4"), ("f_dc_2", "<f4")]
+    props += [("f_rest_0", "<f4"), ("opacity", "<f4"), ("scale_0", "<f4"), ("scale_1", "<f4")]
+    props += [("scale_2", "<f4"), ("red", "u1")]
+    rec = np.zeros(n, dtype=props)
+    rec["x"] = [1, 2, 3]
+    rec["rot_0"] = 1
+    rec["f_dc_0"], rec["f_dc_1"], rec["f_dc_2"] = 0.0, 1.0, 2.0
+    names = {"<f4": "float", "<f8": "double", "u1": "uchar"}
+    header = "ply\nformat binary_little_endian 1.0\ncomment made by a test\n"
+    header += f"element vertex {n}\n" + "".join(f"property {names[t]} {p}\n" for p, t in props)
+    header += "element face 0\nproperty list uchar int vertex_indices\nend_header\n"
+    path = tmp_path / "other.ply"
+    path.write_bytes(header.encode() + rec.tobytes())
+    g = load_ply(path)
+    assert torch.equal(g["means"][:, 0], torch.tensor([1.0, 2, 3]))
+    assert torch.allclose(g["colors"], torch.full((3, 1), 0.5 + SH_C0))  # gray = mean of the channels
+
+
+@pytest.mark.parametrize(
+    ("body", "needle"),
+    [
+        (b"hello", "not a PLY file"),
+        (
+            b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n",
+            "line 2: unsupported format",
+        ),
+        (b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n", "lacks"),
+    ],
+)
+def test_ply_reader_errors_name_the_position(tmp_path: Path, body: bytes, needle: str):
+    path = tmp_path / "bad.ply"
+    path.write_bytes(body)
+    with pytest.raises(ValueError, match=needle) as e:
+        load_ply(path)
+    assert str(path) in str(e.value)
+
+
+def test_ply_truncated(tmp_path: Path):
+    path = tmp_path / "t.ply"
+    save_ply(path, small(10))
+    path.write_bytes(path.read_bytes()[:-5])
+    with pytest.raises(ValueError, match="truncated"):
+        load_ply(path)
+
+
+def test_shape_validation():
+    with pytest.raises(ValueError, match="colors has shape"):
+        Gaussians(torch.zeros(2, 3), torch.zeros(2, 3), torch.zeros(2, 4), torch.zeros(2), torch.zeros(2, 3))

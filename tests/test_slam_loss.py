@@ -1,0 +1,149 @@
+"""The event loss on known images, and SSIM against scikit-image."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+import torch
+from evgs.config import load_config
+from evgs.slam.loss import event_loss, event_mask, linlog, predicted_events, ssim, valid_mask
+from skimage.metrics import structural_similarity
+
+LOSS = load_config().loss
+
+
+def cfg(**kw):
+    return dataclasses.replace(LOSS, **kw)
+
+
+def blobs(seed: int, shape=(2, 40, 48)) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(shape, generator=g, dtype=torch.float64)
+    return torch.nn.functional.avg_pool2d(x[:, None], 5, 1, 2)[:, 0]
+
+
+@pytest.mark.parametrize("data_range", [1.0, 2.0])
+def test_ssim_matches_skimage(data_range: float):
+    a, b = blobs(0), blobs(1) * 0.7 + 0.1 * blobs(0)
+    got = ssim(a, b, 11, 1.5, data_range)
+    for i in range(len(a)):
+        ref = structural_similarity(
+            a[i].numpy(),
+            b[i].numpy(),
+            gaussian_weights=True,
+            sigma=1.5,
+            use_sample_covariance=False,
+            data_range=data_range,
+        )
+        assert got[i].item() == pytest.approx(ref, abs=1e-10)
+
+
+def test_ssim_identical_is_one_and_float32_works():
+    a = blobs(3).float()
+    assert torch.allclose(ssim(a, a), torch.ones(2), atol=1e-6)
+    with pytest.raises(ValueError, match="smaller than"):
+        ssim(a[:, :8, :8], a[:, :8, :8])
+
+
+def test_linlog_is_continuous_and_matches_its_branches():
+    x = torch.tensor([0.0, 10.0, 20.0, 100.0], dtype=torch.float64)
+    want = torch.tensor([0.0, 10 * math.log(20) / 20, math.log(20), math.log(100)], dtype=torch.float64)
+    assert torch.allclose(linlog(x), want)
+    x = torch.tensor([0.0, 5.0], requires_grad=True)
+    linlog(x).sum().backward()
+    assert torch.allclose(x.grad, torch.full((2,), math.log(20) / 20))  # finite slope on black
+
+
+def test_predicted_events_log_and_linlog():
+    start = torch.full((1, 16, 16), 0.2, dtype=torch.float64)
+    end = start * 2
+    e = predicted_events(start, end, cfg(log_mode="log", log_eps=0.0))
+    assert torch.allclose(e, torch.full_like(e, math.log(2)))
+    e = predicted_events(start, end, cfg(log_mode="linlog"))  # 255·0.2 = 51 ≥ 20: the log branch
+    assert torch.allclose(e, torch.full_like(e, math.log(2)))
+    dark = torch.full((1, 16, 16), 0.02, dtype=torch.float64)  # 5.1 < 20: the linear branch
+    e = predicted_events(dark, dark * 2, cfg(log_mode="linlog"))
+    assert torch.allclose(e, torch.full_like(e, 5.1 * math.log(20) / 20))
+
+
+def test_identical_renders_and_no_events_give_zero_loss():
+    img = blobs(5)
+    terms = event_loss(torch.zeros_like(img), img, img, LOSS)
+    assert terms.total.item() == pytest.approx(0.0, abs=1e-12)
+
+
+def test_known_brightness_step_l1_and_mse():
+    start = torch.full((2, 24, 24), 0.25, dtype=torch.float64)
+    end = start.clone()
+    end[:, :, 12:] = 0.5  # right half brightens by a factor 2: Ê = ln 2 there (eps 0)
+    events = torch.zeros_like(start)
+    events[:, :, 12:] = 0.5
+    c = cfg(log_eps=0.0, lambda_ssim=0.0)
+    half = 0.5 * abs(0.5 - math.log(2))  # half the pixels err by |0.5 − ln 2|
+    assert event_loss(events, start, end, c).total.item() == pytest.approx(half, rel=1e-12)
+    mse = event_loss(events, start, end, dataclasses.replace(c, event_loss="mse")).total.item()
+    assert mse == pytest.approx(0.5 * (0.5 - math.log(2)) ** 2, rel=1e-12)
+    # λ mixes in 1 − SSIM(start, end) exactly as eq. 8.
+    lam = 0.1
+    terms = event_loss(events, start, end, dataclasses.replace(c, lambda_ssim=lam))
+    s = ssim(start, end).mean()
+    assert terms.total.item() == pytest.approx((1 - lam) * half + lam * (1 - s.item()), rel=1e-12)
+
+
+def test_a_shifted_edge_is_penalised_more_the_further_it_moves():
+    x = torch.arange(64, dtype=torch.float64)
+    edge = lambda c: (0.1 + 0.8 * torch.sigmoid((x - c) / 1.5)).expand(1, 32, 64).clone()  # noqa: E731
+    truth = predicted_events(edge(30), edge(33), LOSS)  # events of an edge moving 3 px
+    losses = [event_loss(truth, edge(30), edge(30 + s), LOSS).event.item() for s in (3, 2, 1, 0, 6)]
+    assert losses[0] == pytest.approx(0.0, abs=1e-12)
+    assert losses[0] < losses[1] < losses[2] < losses[3] and losses[0] < losses[4]
+
+
+def test_masks():
+    a = torch.full((1, 50, 60), 0.9)
+    a[0, 25, 30] = 0.8  # alpha ≤ 0.8 at the start: masked
+    b = a.clone()
+    b[0, 26, 31] = 0.5  # ... or at the end
+    m = valid_mask(a, b, border=20, min_alpha=0.8)
+    assert m.shape == a.shape and m.sum().item() == 10 * 20 - 2
+    assert not m[0, 19, 30] and not m[0, 25, 30] and not m[0, 26, 31] and m[0, 22, 35]
+    assert valid_mask(a, b).all()
+    assert torch.equal(
+        event_mask(torch.tensor([-0.3, 0.1, 0.0, 0.2]), 0.1), torch.tensor([True, False, False, True])
+    )
+
+
+def test_masked_loss_ignores_masked_pixels_and_event_threshold():
+    start = blobs(7)[:1]
+    end = blobs(8)[:1]
+    events = predicted_events(start, end, LOSS)
+    bad = events.clone()
+    bad[0, :5] += 10.0  # corrupt the top rows
+    mask = torch.ones_like(bad, dtype=torch.bool)
+    mask[0, :5] = False
+    assert event_loss(bad, start, end, LOSS, mask).event.item() == pytest.approx(0.0, abs=1e-12)
+    assert event_loss(bad, start, end, LOSS).event.item() > 1.0
+    sparse = torch.zeros_like(events)
+    sparse[0, 10, 10] = 0.3
+    thr = cfg(event_mask_threshold=0.1)
+    e_hat = predicted_events(start, end, LOSS)
+    want = abs(0.3 - e_hat[0, 10, 10].item())  # only the one pixel with events counts
+    assert event_loss(sparse, start, end, thr).event.item() == pytest.approx(want, rel=1e-12)
+    empty = torch.zeros_like(mask)
+    assert event_loss(bad, start, end, LOSS, empty).event.item() == 0.0
+
+
+def test_gradients_reach_both_renders():
+    start = blobs(9).requires_grad_(True)
+    end = blobs(10).requires_grad_(True)
+    events = torch.zeros_like(start)
+    event_loss(events, start, end, LOSS).total.backward()
+    assert start.grad.abs().sum() > 0 and end.grad.abs().sum() > 0
+    assert torch.isfinite(start.grad).all()
+
+
+def test_shape_errors():
+    with pytest.raises(ValueError, match="one shape"):
+        event_loss(torch.zeros(1, 20, 20), torch.zeros(1, 20, 20), torch.zeros(1, 20, 21), LOSS)
