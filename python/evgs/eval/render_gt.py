@@ -40,8 +40,6 @@ def render_at_gt_frames(
     out = []
     with torch.inference_mode():
         for s in range(0, len(viewmats), batch):
-            res = render(
-                g.means, g.log_scales, g.quats, g.opacities, g.colors, viewmats[s : s + batch], seq.camera
-            )
+            res = render(**g.render_inputs(), viewmats=viewmats[s : s + batch], camera=seq.camera)
             out.append(res.color.mean(dim=-1).clamp(0.0, 1.0).numpy())
     return np.concatenate(out).astype(np.float64)
