@@ -30,6 +30,9 @@ use crate::events::Events;
 /// Per-pixel thresholds drawn below this are clamped to it (a non-positive threshold is meaningless).
 pub const C_MIN: f64 = 0.01;
 
+/// |ΔL| below this counts as unchanged in [`EventSimulator::log_change_quantile`] (renderer rounding).
+pub const CHANGE_FLOOR: f32 = 1e-4;
+
 /// Stream index of the draws made once at construction (thresholds, hot pixels); frame `k` uses `k + 1`.
 const SETUP_STREAM: u64 = 0;
 
@@ -222,9 +225,11 @@ impl EventSimulator {
         Ok(self.advance(t_us, log.to_vec(), lin))
     }
 
-    /// The `q`-quantile of |ΔL| between the last frame and `intensity`, over the pixels that changed and
-    /// are at least `min_level` bright in both frames (0 when none). Drives the adaptive render rate:
-    /// silhouette pixels jumping from black are excluded because no frame rate makes them smooth.
+    /// The `q`-quantile of |ΔL| between the last frame and `intensity`, over the pixels that changed (by
+    /// more than [`CHANGE_FLOOR`]) and are at least `min_level` bright in both frames; 0 when none.
+    /// Drives the adaptive render rate. Silhouettes jumping from black are excluded, and a quantile
+    /// rather than the maximum is used, because edges (silhouettes, texture and facet boundaries) are
+    /// steps at any frame rate: the driver bounds them by limiting image motion per frame instead.
     pub fn log_change_quantile(&self, intensity: &[f32], q: f64, min_level: f32) -> Result<f64> {
         if self.t_prev.is_none() {
             return Err(Error::Invalid("log_change_quantile needs a previous frame".into()));
@@ -242,7 +247,7 @@ impl EventSimulator {
             .zip(self.lin.par_iter().zip(self.log.par_iter()))
             .filter_map(|(&i1, (&i0, &l0))| {
                 let dl = ((i1.max(0.0) + eps).ln() - l0).abs();
-                (i0 >= min_level && i1 >= min_level && dl > 0.0).then_some(dl)
+                (i0 >= min_level && i1 >= min_level && dl > CHANGE_FLOOR).then_some(dl)
             })
             .collect();
         if changes.is_empty() {
