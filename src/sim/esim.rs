@@ -22,7 +22,7 @@
 
 use rayon::prelude::*;
 
-use super::noise::{poisson_events, NoiseConfig};
+use super::noise::{poisson_events, shot_noise_row, NoiseConfig};
 use super::rng::Rng;
 use crate::error::{Error, Result};
 use crate::events::Events;
@@ -315,12 +315,18 @@ impl EventSimulator {
                         }
                     }
                     d_row[x] = d + slope * (t1f - t);
-                    let rate =
-                        cfg.noise.rate_hz(0.5 * (f64::from(old_lin[i]) + f64::from(new_lin[i])), hot[i]);
-                    if rate > 0.0 {
-                        poisson_events(&mut rng, rate, t0, t_us, |t, p| out.push(PixelEvent { t, idx, p }));
+                    if hot[i] {
+                        poisson_events(&mut rng, cfg.noise.hot_pixel_rate_hz, t0, t_us, |t, p| {
+                            out.push(PixelEvent { t, idx, p })
+                        });
                     }
                 }
+                let row = y * w;
+                let mean_intensity =
+                    |x: usize| 0.5 * (f64::from(old_lin[row + x]) + f64::from(new_lin[row + x]));
+                shot_noise_row(&cfg.noise, &mut rng, w, mean_intensity, t0, t_us, |x, t, p| {
+                    out.push(PixelEvent { t, idx: (row + x) as u32, p })
+                });
                 out
             })
             .collect();

@@ -49,27 +49,49 @@ impl NoiseConfig {
         Ok(())
     }
 
-    /// Rate (events/s) of spurious events of a pixel whose mean linear intensity is `intensity`.
+    /// Shot-noise rate (events/s) of a pixel whose mean linear intensity is `intensity`.
     #[inline]
-    pub fn rate_hz(&self, intensity: f64, hot: bool) -> f64 {
-        let shot = if self.shot_rate_hz > 0.0 {
-            self.shot_rate_hz * self.shot_dark_level / (intensity.max(0.0) + self.shot_dark_level)
-        } else {
-            0.0
-        };
-        shot + if hot { self.hot_pixel_rate_hz } else { 0.0 }
+    pub fn shot_rate_at(&self, intensity: f64) -> f64 {
+        self.shot_rate_hz * self.shot_dark_level / (intensity.max(0.0) + self.shot_dark_level)
     }
 }
 
-/// Draw the Poisson events of one pixel over the interval `(t0, t1]` µs (uniform times, fair polarity)
-/// and hand each `(t, polarity)` to `emit`.
+/// A uniform time in `(t0, t1]` µs and a fair polarity.
 #[inline]
+fn random_event(rng: &mut Rng, t0: i64, t1: i64) -> (i64, i8) {
+    let t = (t0 + 1 + (rng.uniform() * (t1 - t0) as f64) as i64).min(t1);
+    (t, if rng.next_u64() >> 63 == 0 { 1 } else { -1 })
+}
+
+/// The Poisson events of one pixel firing at `rate_hz` over `(t0, t1]` µs, handed to `emit(t, p)`.
 pub(crate) fn poisson_events(rng: &mut Rng, rate_hz: f64, t0: i64, t1: i64, mut emit: impl FnMut(i64, i8)) {
-    let span = (t1 - t0) as f64;
-    let n = rng.poisson(rate_hz * span * 1e-6);
-    for _ in 0..n {
-        let t = t0 + 1 + (rng.uniform() * span) as i64;
-        let p = if rng.next_u64() >> 63 == 0 { 1 } else { -1 };
-        emit(t.min(t1), p);
+    for _ in 0..rng.poisson(rate_hz * (t1 - t0) as f64 * 1e-6) {
+        let (t, p) = random_event(rng, t0, t1);
+        emit(t, p);
+    }
+}
+
+/// Shot noise of one pixel row over `(t0, t1]` µs by thinning: candidates arrive at the dark rate
+/// (the maximum) on uniformly chosen pixels and are kept with probability `rate(I) / dark rate`. The
+/// cost is proportional to the number of candidates, not to the number of pixels.
+pub(crate) fn shot_noise_row(
+    cfg: &NoiseConfig,
+    rng: &mut Rng,
+    width: usize,
+    intensity: impl Fn(usize) -> f64,
+    t0: i64,
+    t1: i64,
+    mut emit: impl FnMut(usize, i64, i8),
+) {
+    if cfg.shot_rate_hz <= 0.0 {
+        return;
+    }
+    for _ in 0..rng.poisson(cfg.shot_rate_hz * width as f64 * (t1 - t0) as f64 * 1e-6) {
+        let x = ((rng.uniform() * width as f64) as usize).min(width - 1);
+        let keep = rng.uniform() * cfg.shot_rate_hz < cfg.shot_rate_at(intensity(x));
+        let (t, p) = random_event(rng, t0, t1);
+        if keep {
+            emit(x, t, p);
+        }
     }
 }

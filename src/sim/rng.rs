@@ -44,22 +44,28 @@ impl Rng {
         (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
     }
 
-    /// Poisson count with mean `lambda` by inversion of the CDF. Meant for the small means of sensor
-    /// noise per pixel and frame (the loop runs about `lambda` + 1 times).
-    pub fn poisson(&mut self, lambda: f64) -> u32 {
-        if lambda <= 0.0 {
-            return 0;
+    /// Poisson count with mean `lambda`, by inversion of the CDF on pieces of mean ≤ 30 (a sum of
+    /// Poisson variables is Poisson; the pieces keep `exp(−λ)` far from underflow). Cost ∝ `lambda`,
+    /// fine for sensor noise.
+    pub fn poisson(&mut self, lambda: f64) -> u64 {
+        const PIECE: f64 = 30.0;
+        let mut total = 0u64;
+        let mut rest = lambda.max(0.0);
+        while rest > 0.0 {
+            let l = rest.min(PIECE);
+            rest -= l;
+            let u = self.uniform();
+            let mut p = (-l).exp();
+            let mut cdf = p;
+            let mut k = 0u32;
+            while u >= cdf && p > 0.0 {
+                k += 1;
+                p *= l / f64::from(k);
+                cdf += p;
+            }
+            total += u64::from(k);
         }
-        let u = self.uniform();
-        let mut p = (-lambda).exp();
-        let mut cdf = p;
-        let mut k = 0u32;
-        while u >= cdf && p > 0.0 {
-            k += 1;
-            p *= lambda / f64::from(k);
-            cdf += p;
-        }
-        k
+        total
     }
 }
 
@@ -96,12 +102,18 @@ mod tests {
             let z = r.normal();
             sn += z;
             sn2 += z * z;
-            sp += f64::from(r.poisson(0.7));
+            sp += r.poisson(0.7) as f64;
         }
         let n = f64::from(n);
         assert!((su / n - 0.5).abs() < 0.005);
         assert!((sn / n).abs() < 0.01);
         assert!((sn2 / n - 1.0).abs() < 0.02);
         assert!((sp / n - 0.7).abs() < 0.01);
+        // Large means (pieced): mean and variance both ≈ λ.
+        let big: Vec<f64> = (0..2000).map(|_| r.poisson(1000.0) as f64).collect();
+        let mean = big.iter().sum::<f64>() / 2000.0;
+        let var = big.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / 1999.0;
+        assert!((mean - 1000.0).abs() < 3.0, "{mean}");
+        assert!((var / 1000.0 - 1.0).abs() < 0.15, "{var}");
     }
 }
