@@ -1,6 +1,8 @@
 """Geometry of the simulator: trajectories give camera-to-world poses looking at the target, and a known
 mesh vertex appears in the rendered image exactly where the pinhole model projects it."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import trimesh
@@ -18,9 +20,9 @@ MARKER = np.array([0.4, -0.3, 0.25])
 FLAT = Lighting(sun_dir=(0.0, 0.0, 1.0), sun=0.0, ambient=1.0)
 
 
-def marker_scene():
+def marker_scene(position=MARKER):
     ball = trimesh.creation.icosphere(subdivisions=2, radius=0.04)
-    ball.apply_translation(MARKER)
+    ball.apply_translation(position)
     return build_scene([(ball, MATERIAL_IDS["paint"])])
 
 
@@ -106,3 +108,24 @@ def test_procedural_targets_are_sane(make):
     d = s.ray_distance(np.array([10.0, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0]))
     assert 8.0 < d < 10.0
     assert s.ray_distance(np.array([10.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0])) == np.inf
+
+
+def test_distorted_camera_renders_where_opencv_projects():
+    import cv2
+
+    cfg = SimConfig("t").with_resolution(320, 240)
+    cam = dataclasses.replace(cfg, distortion=(-0.3, 0.1, 1e-3, -1e-3, 0.0)).camera
+    T = Trajectory("orbit", 6.0, 1.0, 2.0, 15.0, 20.0)(0.2)
+    # A marker off-centre (normalised image coordinates (0.33, 0.23)), where distortion moves it.
+    marker = T[:3, :3] @ np.array([2.0, 1.4, 6.0]) + T[:3, 3]
+    with Renderer(marker_scene(marker), cam, FLAT) as r:
+        img = r.render(T)
+    assert img.shape == (240, 320)
+    yy, xx = np.nonzero(img > 0)
+    w = img[yy, xx].astype(np.float64)
+    centroid = np.array([(xx * w).sum(), (yy * w).sum()]) / w.sum()
+    T_cw = np.linalg.inv(T)
+    rvec, _ = cv2.Rodrigues(T_cw[:3, :3])
+    uv, _ = cv2.projectPoints(marker[None], rvec, T_cw[:3, 3], cam.K, np.array(cam.distortion))
+    assert np.linalg.norm(uv[0, 0] - project(cam, T, marker[None])[0]) > 2.0  # distortion matters here
+    np.testing.assert_allclose(centroid, uv[0, 0], atol=0.25)

@@ -72,8 +72,10 @@ def test_ensure_sequence_reuses_the_folder(tiny):
 def test_cli_overrides_and_errors(tmp_path, capsys):
     out = tmp_path / "s"
     args = ["simulate", "--preset", "tiny", "--out", str(out), "--no-progress", "--duration", "0.12"]
-    assert main([*args, "--trajectory", "approach", "--set", "seed=7", "--set", "c_on=0.3"]) == 0
+    sets = ["--set", "seed=7", "--set", "c_on=0.3", "--set", "distortion=-0.1,0.01,0,0,0"]
+    assert main([*args, "--trajectory", "approach", *sets]) == 0
     seq = Sequence.load(out)
+    assert seq.camera.distortion == (-0.1, 0.01, 0.0, 0.0, 0.0)
     assert len(seq.frames_us()) == 4
     assert seq.meta["simulator"]["trajectory"] == "approach" and seq.meta["simulator"]["seed"] == 7
     assert seq.meta["simulator"]["c_on"] == 0.3
@@ -84,3 +86,20 @@ def test_cli_overrides_and_errors(tmp_path, capsys):
     assert "cannot read 'abc' as float" in capsys.readouterr().err
     assert main([*args, "--target", str(tmp_path / "missing.obj")]) == 2
     assert "neither a built-in" in capsys.readouterr().err
+
+
+def test_cli_replays_a_tum_trajectory(tmp_path):
+    from evgs.data.tum import write_tum
+    from evgs.sim.trajectory import Trajectory
+
+    t = np.linspace(0.0, 0.12, 13)
+    poses = Trajectory("swirl", 7.0, 1.0, 0.12, 10.0, 40.0)(t)
+    write_tum(tmp_path / "traj.txt", 50.0 + t, poses)
+    out = tmp_path / "replay"
+    assert main(["simulate", "--preset", "tiny", "--poses", str(tmp_path / "traj.txt"), "--out", str(out),
+                 "--no-progress"]) == 0  # fmt: skip
+    seq = Sequence.load(out)
+    t_us, T = seq.poses_gt()
+    np.testing.assert_array_equal(t_us, [0, 40_000, 80_000, 120_000])
+    np.testing.assert_allclose(T, poses[::4], atol=1e-7)
+    assert seq.meta["simulator"]["poses_t0_s"] == 50.0

@@ -31,6 +31,8 @@ class SimConfig:
     fy: float = 560.0
     cx: float = 319.5
     cy: float = 239.5
+    distortion: tuple[float, ...] = ()
+    """OpenCV ``k1, k2, p1, p2, k3`` (``--set distortion=-0.1,0.02,0,0,0``); empty: pinhole."""
     # Trajectory.
     trajectory: str = "orbit"
     poses: str = ""
@@ -68,7 +70,7 @@ class SimConfig:
 
     @property
     def camera(self) -> Camera:
-        return Camera(self.width, self.height, self.fx, self.fy, self.cx, self.cy)
+        return Camera(self.width, self.height, self.fx, self.fy, self.cx, self.cy, self.distortion)
 
     def make_trajectory(self) -> Trajectory | ReplayTrajectory:
         if self.poses:
@@ -92,6 +94,10 @@ class SimConfig:
             raise ValueError(f"unknown setting {key!r} (known: {', '.join(fields)})")
         kind = type(getattr(self, key))
         try:
+            if kind is tuple:
+                return dataclasses.replace(
+                    self, **{key: tuple(float(v) for v in value.split(",") if v.strip())}
+                )
             return dataclasses.replace(self, **{key: kind(value)})
         except ValueError:
             raise ValueError(f"setting {key}: cannot read {value!r} as {kind.__name__}") from None

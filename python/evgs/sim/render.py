@@ -5,11 +5,13 @@ fixed in the world frame, only the camera moves); fill lights and an ambient ter
 The camera is an OpenCV pinhole: the vertex shader maps camera coordinates straight to clip space so
 that pixel ``(u, v)`` of the returned image is exactly where ``K · X_c`` lands (pixel centres at integer
 coordinates, row 0 at the top). Multisampling anti-aliases silhouettes so that edge pixels change
-gradually as the target moves.
+gradually as the target moves. With lens distortion (OpenCV ``k1 k2 p1 p2 k3``), a pinhole image large
+enough to hold every distorted pixel's undistorted position is rendered and resampled (``cv2.remap``).
 """
 
 from __future__ import annotations
 
+import cv2
 import moderngl
 import numpy as np
 
@@ -139,6 +141,22 @@ def sun_view_projection(direction: np.ndarray, centre: np.ndarray, radius: float
     return m
 
 
+def distortion_map(camera: Camera) -> tuple[Camera, np.ndarray, np.ndarray]:
+    """For a distorted camera: the pinhole camera to render (same focal lengths, a canvas covering every
+    undistorted pixel position plus a margin) and the float32 ``remap`` tables from it."""
+    w, h = camera.width, camera.height
+    uv = np.stack(np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64)), -1)
+    und = cv2.undistortPoints(uv.reshape(-1, 1, 2), camera.K, np.asarray(camera.distortion, np.float64))
+    x = und.reshape(h, w, 2)
+    px = x[..., 0] * camera.fx + camera.cx
+    py = x[..., 1] * camera.fy + camera.cy
+    margin = 2
+    x0, y0 = int(np.floor(px.min())) - margin, int(np.floor(py.min())) - margin
+    x1, y1 = int(np.ceil(px.max())) + margin, int(np.ceil(py.max())) + margin
+    pinhole = Camera(x1 - x0 + 1, y1 - y0 + 1, camera.fx, camera.fy, camera.cx - x0, camera.cy - y0)
+    return pinhole, (px - x0).astype(np.float32), (py - y0).astype(np.float32)
+
+
 class Renderer:
     """Render a static scene from any camera pose. Use as a context manager (releases the GL context)."""
 
@@ -154,6 +172,11 @@ class Renderer:
         far: float = 500.0,
     ) -> None:
         self.camera = camera
+        self.remap: tuple[np.ndarray, np.ndarray] | None = None
+        if any(camera.distortion):
+            camera, *maps = distortion_map(camera)
+            self.remap = (maps[0], maps[1])
+        self.canvas = camera
         self.ctx = moderngl.create_standalone_context(backend="egl")
         ctx = self.ctx
         samples = min(msaa, ctx.max_samples) if msaa > 1 else 0
@@ -223,7 +246,10 @@ class Renderer:
         if self.resolved is not self.fbo:
             self.ctx.copy_framebuffer(self.resolved, self.fbo)
         data = self.resolved.read(components=1, dtype="f4")
-        return np.frombuffer(data, np.float32).reshape(self.camera.height, self.camera.width)
+        img = np.frombuffer(data, np.float32).reshape(self.canvas.height, self.canvas.width)
+        if self.remap is not None:
+            img = cv2.remap(img, *self.remap, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return img
 
     def release(self) -> None:
         self.ctx.release()
