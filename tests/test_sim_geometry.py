@@ -11,7 +11,7 @@ from evgs.sim.lights import Lighting
 from evgs.sim.materials import MATERIAL_IDS
 from evgs.sim.presets import SimConfig
 from evgs.sim.render import Renderer
-from evgs.sim.scene import build_scene, hubble, satellite
+from evgs.sim.scene import build_scene, hubble, load_mesh, make_scene, satellite
 from evgs.sim.simulate import project
 from evgs.sim.trajectory import ReplayTrajectory, Trajectory
 
@@ -129,3 +129,18 @@ def test_distorted_camera_renders_where_opencv_projects():
     uv, _ = cv2.projectPoints(marker[None], rvec, T_cw[:3, 3], cam.K, np.array(cam.distortion))
     assert np.linalg.norm(uv[0, 0] - project(cam, T, marker[None])[0]) > 2.0  # distortion matters here
     np.testing.assert_allclose(centroid, uv[0, 0], atol=0.25)
+
+
+def test_any_mesh_file_can_be_the_target(tmp_path):
+    box = trimesh.creation.box(extents=(1.0, 2.0, 0.5))
+    box.apply_translation([5.0, 0.0, 0.0])
+    box.export(tmp_path / "box.ply")
+    s = load_mesh(tmp_path / "box.ply", material="foil", scale=2.0)
+    np.testing.assert_allclose(s.triangles.reshape(-1, 3).min(0), [-1.0, -2.0, -0.5], atol=1e-6)
+    assert np.all(s.material == MATERIAL_IDS["foil"])
+    assert make_scene(str(tmp_path / "box.ply")).triangles.shape == s.triangles.shape
+    (tmp_path / "bad.obj").write_text("this is not a mesh\n")
+    with pytest.raises(ValueError, match=r"bad.obj"):
+        load_mesh(tmp_path / "bad.obj")
+    with pytest.raises(ValueError, match="unknown material"):
+        load_mesh(tmp_path / "box.ply", material="gold")

@@ -69,17 +69,20 @@ impl PyEventSimulator {
         py.detach(|| sim.push_log_frame(t_us, frame)).map_err(to_py_err)
     }
 
-    /// `q`-quantile of |Δ log I| to `intensity` over changed pixels at least `min_level` bright in both.
-    fn log_change_quantile(
-        &self,
+    /// Push `intensity` at `t_us` unless the `q`-quantile of |Δ log I| over lit changing pixels exceeds
+    /// `max_change`; returns `(change, events added or None when refused)`.
+    fn push_frame_if_smooth(
+        &mut self,
         py: Python<'_>,
+        t_us: i64,
         intensity: PyReadonlyArray1<'_, f32>,
         q: f64,
         min_level: f32,
-    ) -> PyResult<f64> {
+        max_change: f64,
+    ) -> PyResult<(f64, Option<usize>)> {
         let frame = intensity.as_slice()?;
-        let sim = &self.inner;
-        py.detach(|| sim.log_change_quantile(frame, q, min_level)).map_err(to_py_err)
+        let sim = &mut self.inner;
+        py.detach(|| sim.push_frame_if_smooth(t_us, frame, q, min_level, max_change)).map_err(to_py_err)
     }
 
     /// All events generated so far (dict of numpy columns, sorted by t then pixel index).

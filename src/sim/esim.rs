@@ -212,8 +212,7 @@ impl EventSimulator {
     /// Returns the number of events added.
     pub fn push_frame(&mut self, t_us: i64, intensity: &[f32]) -> Result<usize> {
         self.check_frame(t_us, intensity)?;
-        let eps = self.cfg.log_eps as f32;
-        let log: Vec<f32> = intensity.par_iter().map(|&v| (v.max(0.0) + eps).ln()).collect();
+        let log = self.to_log(intensity);
         Ok(self.advance(t_us, log, intensity.to_vec()))
     }
 
@@ -225,37 +224,55 @@ impl EventSimulator {
         Ok(self.advance(t_us, log.to_vec(), lin))
     }
 
-    /// The `q`-quantile of |ΔL| between the last frame and `intensity`, over the pixels that changed (by
-    /// more than [`CHANGE_FLOOR`]) and are at least `min_level` bright in both frames; 0 when none.
-    /// Drives the adaptive render rate. Silhouettes jumping from black are excluded, and a quantile
-    /// rather than the maximum is used, because edges (silhouettes, texture and facet boundaries) are
-    /// steps at any frame rate: the driver bounds them by limiting image motion per frame instead.
-    pub fn log_change_quantile(&self, intensity: &[f32], q: f64, min_level: f32) -> Result<f64> {
-        if self.t_prev.is_none() {
-            return Err(Error::Invalid("log_change_quantile needs a previous frame".into()));
+    /// Push a linear-intensity frame only if the change since the last frame is smooth enough: the
+    /// `q`-quantile of |ΔL| must not exceed `max_change` (see [`Self::change_quantile`]). Returns that
+    /// quantile and `Some(events added)`, or `None` with nothing changed when the frame is rejected (the
+    /// caller renders a nearer time instead). One log conversion serves both the check and the events.
+    pub fn push_frame_if_smooth(
+        &mut self,
+        t_us: i64,
+        intensity: &[f32],
+        q: f64,
+        min_level: f32,
+        max_change: f64,
+    ) -> Result<(f64, Option<usize>)> {
+        self.check_frame(t_us, intensity)?;
+        let log = self.to_log(intensity);
+        let change = self.change_quantile(&log, intensity, q, min_level);
+        if change > max_change {
+            return Ok((change, None));
         }
-        if intensity.len() != self.lin.len() {
-            return Err(Error::Invalid(format!(
-                "frame has {} pixels, expected {}",
-                intensity.len(),
-                self.lin.len()
-            )));
-        }
+        Ok((change, Some(self.advance(t_us, log, intensity.to_vec()))))
+    }
+
+    fn to_log(&self, intensity: &[f32]) -> Vec<f32> {
         let eps = self.cfg.log_eps as f32;
-        let mut changes: Vec<f32> = intensity
-            .par_iter()
-            .zip(self.lin.par_iter().zip(self.log.par_iter()))
-            .filter_map(|(&i1, (&i0, &l0))| {
-                let dl = ((i1.max(0.0) + eps).ln() - l0).abs();
+        intensity.par_iter().map(|&v| (v.max(0.0) + eps).ln()).collect()
+    }
+
+    /// The `q`-quantile of |ΔL| from the last frame to (`log`, `lin`), over the pixels that changed (by
+    /// more than [`CHANGE_FLOOR`]) and are at least `min_level` bright in both frames; 0 when none (or
+    /// when there is no last frame). Drives the adaptive render rate. Silhouettes jumping from black
+    /// are excluded, and a quantile rather than the maximum is used, because edges (silhouettes,
+    /// texture and facet boundaries) are steps at any frame rate: the driver bounds them by limiting
+    /// image motion per frame instead.
+    fn change_quantile(&self, log: &[f32], lin: &[f32], q: f64, min_level: f32) -> f64 {
+        if self.t_prev.is_none() {
+            return 0.0;
+        }
+        let mut changes: Vec<f32> = (log, lin, &self.log[..], &self.lin[..])
+            .into_par_iter()
+            .filter_map(|(&l1, &i1, &l0, &i0)| {
+                let dl = (l1 - l0).abs();
                 (i0 >= min_level && i1 >= min_level && dl > CHANGE_FLOOR).then_some(dl)
             })
             .collect();
         if changes.is_empty() {
-            return Ok(0.0);
+            return 0.0;
         }
         let k = ((q.clamp(0.0, 1.0) * (changes.len() - 1) as f64).round()) as usize;
         let (_, v, _) = changes.select_nth_unstable_by(k, f32::total_cmp);
-        Ok(f64::from(*v))
+        f64::from(*v)
     }
 
     fn advance(&mut self, t_us: i64, log: Vec<f32>, lin: Vec<f32>) -> usize {
@@ -503,6 +520,25 @@ mod tests {
             (0..a.len()).map(|i| (a.t[i], u32::from(a.y[i]) * 64 + u32::from(a.x[i]))).collect();
         assert!(key.windows(2).all(|w| w[0] <= w[1]));
         assert_ne!(a, EventSimulator::new(1, 1, EsimConfig::default()).unwrap().take_events());
+    }
+
+    #[test]
+    fn rough_frames_are_refused_and_change_nothing() {
+        let cfg = EsimConfig { c_on: 0.1, c_off: 0.1, ..Default::default() };
+        let mut sim = EventSimulator::new(4, 1, cfg).unwrap();
+        let base = [0.5f32, 0.5, 0.5, 0.0];
+        assert_eq!(sim.push_frame_if_smooth(0, &base, 0.5, 0.01, 0.1).unwrap(), (0.0, Some(0)));
+        // ΔL = ln 1.2, ln 1.2, ln 3 on the lit pixels (the black one is ignored): median ln 1.2.
+        let next = [0.6f32, 0.6, 1.5, 1.0];
+        let med = f64::from((0.6f32 + 1e-3).ln() - (0.5f32 + 1e-3).ln());
+        let (change, added) = sim.push_frame_if_smooth(1000, &next, 0.5, 0.01, 0.1).unwrap();
+        assert!((change - med).abs() < 1e-6 && added.is_none());
+        let (change, _) = sim.push_frame_if_smooth(1000, &next, 1.0, 0.01, 10.0).unwrap();
+        assert!((change - f64::from((1.5f32 + 1e-3).ln() - (0.5f32 + 1e-3).ln())).abs() < 1e-6);
+        // The refused attempt changed nothing: the accepted one above produced the events of 0 → 1000.
+        let ev = sim.take_events();
+        assert_eq!(ev.len(), 1 + 1 + 10 + 69);
+        assert_eq!(sim.last_time(), Some(1000));
     }
 
     #[test]

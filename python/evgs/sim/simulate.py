@@ -18,6 +18,7 @@ from evgs.sim.lights import LIGHTING
 from evgs.sim.presets import SimConfig, preset
 from evgs.sim.render import Renderer
 from evgs.sim.scene import Scene, make_scene
+from evgs.sim.trajectory import ReplayTrajectory
 
 # Vertices used to bound image motion per frame (an even subsample of large meshes).
 MAX_MOTION_VERTICES = 4000
@@ -117,17 +118,18 @@ def simulate(cfg: SimConfig, out: str | Path, *, progress: bool = True) -> Seque
             step = min(dt_change, motion.dt_us(t * 1e-6), cfg.dt_max_us)
             t_next = min(t + max(int(step), cfg.dt_min_us), next_required)
             img = render(t_next)
-            e0 = time.perf_counter()
-            change = sim.log_change_quantile(img.ravel(), cfg.change_quantile, min_level)
             dt = t_next - t
-            if change > 2.0 * target_change and dt > cfg.dt_min_us:
-                # Far too coarse: retry with the step the observed change rate asks for.
+            # Far too coarse (unless already at the minimum step): refuse and retry nearer.
+            limit = 2.0 * target_change if dt > cfg.dt_min_us else np.inf
+            e0 = time.perf_counter()
+            change, added = sim.push_frame_if_smooth(
+                t_next, img.ravel(), cfg.change_quantile, min_level, limit
+            )
+            stats["events_s"] += time.perf_counter() - e0
+            if added is None:
                 dt_change = max(cfg.dt_min_us, dt * target_change / change)
                 stats["rejected_renders"] += 1
-                stats["events_s"] += time.perf_counter() - e0
                 continue
-            sim.push_frame(t_next, img.ravel())
-            stats["events_s"] += time.perf_counter() - e0
             dt_change = min(dt * target_change / max(change, 1e-12), 2.0 * max(dt_change, dt))
             record(t_next, img)
             t = t_next
@@ -138,17 +140,16 @@ def simulate(cfg: SimConfig, out: str | Path, *, progress: bool = True) -> Seque
     stats.update(
         events=len(ev), hot_pixels=sim.hot_pixel_count, range_samples=len(ranges), range_misses=range_misses
     )
-    t_poses = frames_us
-    poses = trajectory(t_poses * 1e-6)
+    poses = trajectory(frames_us * 1e-6)
     meta = {
         "source": "evgs simulate",
         "simulator": {**dataclasses.asdict(cfg), "stats": stats},
     }
-    if hasattr(trajectory, "t0"):
-        meta["simulator"]["poses_t0_s"] = trajectory.t0
+    if isinstance(trajectory, ReplayTrajectory):
+        meta["simulator"]["poses_t0_s"] = trajectory.t0  # sequence time 0 = the file's first pose
     rng = (np.array([t for t, _ in ranges], np.int64), np.array([d for _, d in ranges]))
     return write_sequence(
-        out, cfg.name, camera, ev, frames_us, poses_gt=(t_poses, poses), images=np.stack(images),
+        out, cfg.name, camera, ev, frames_us, poses_gt=(frames_us, poses), images=np.stack(images),
         range_samples=rng, meta=meta,
     )  # fmt: skip
 
