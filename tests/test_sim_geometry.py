@@ -3,6 +3,7 @@ mesh vertex appears in the rendered image exactly where the pinhole model projec
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 import trimesh
@@ -111,8 +112,6 @@ def test_procedural_targets_are_sane(make):
 
 
 def test_distorted_camera_renders_where_opencv_projects():
-    import cv2
-
     cfg = SimConfig("t").with_resolution(320, 240)
     cam = dataclasses.replace(cfg, distortion=(-0.3, 0.1, 1e-3, -1e-3, 0.0)).camera
     T = Trajectory("orbit", 6.0, 1.0, 2.0, 15.0, 20.0)(0.2)

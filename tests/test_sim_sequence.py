@@ -1,12 +1,18 @@
 """The ``tiny`` preset end to end: a valid canonical sequence with events, poses, images and range;
 ``ensure_sequence`` simulates once and then reuses; the CLI applies overrides and reports bad ones."""
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from evgs.cli import main
 from evgs.data.sequence import Sequence
+from evgs.data.tum import write_tum
 from evgs.geometry import invert_pose
 from evgs.sim import ensure_sequence, preset
+from evgs.sim.trajectory import Trajectory
 
 
 @pytest.fixture(scope="module")
@@ -89,9 +95,6 @@ def test_cli_overrides_and_errors(tmp_path, capsys):
 
 
 def test_cli_replays_a_tum_trajectory(tmp_path):
-    from evgs.data.tum import write_tum
-    from evgs.sim.trajectory import Trajectory
-
     t = np.linspace(0.0, 0.12, 13)
     poses = Trajectory("swirl", 7.0, 1.0, 0.12, 10.0, 40.0)(t)
     write_tum(tmp_path / "traj.txt", 50.0 + t, poses)
@@ -103,3 +106,15 @@ def test_cli_replays_a_tum_trajectory(tmp_path):
     np.testing.assert_array_equal(t_us, [0, 40_000, 80_000, 120_000])
     np.testing.assert_allclose(T, poses[::4], atol=1e-7)
     assert seq.meta["simulator"]["poses_t0_s"] == 50.0
+
+
+def test_whole_simulation_is_independent_of_thread_count(tmp_path):
+    digests = []
+    for n in ("1", "2"):
+        out = tmp_path / f"t{n}"
+        env = {**os.environ, "RAYON_NUM_THREADS": n, "LP_NUM_THREADS": n}
+        cmd = [sys.executable, "-m", "evgs.cli", "simulate", "--preset", "tiny", "--duration", "0.12"]
+        subprocess.run([*cmd, "--out", str(out), "--no-progress"], env=env, check=True, capture_output=True)
+        ev = Sequence.load(out).events()
+        digests.append([getattr(ev, c).tobytes() for c in "txyp"])
+    assert len(digests[0][0]) > 0 and digests[0] == digests[1]
