@@ -77,12 +77,14 @@ def test_ensure_sequence_reuses_the_folder(tiny):
 
 def test_cli_overrides_and_errors(tmp_path, capsys):
     out = tmp_path / "s"
-    args = ["simulate", "--preset", "tiny", "--out", str(out), "--no-progress", "--duration", "0.12"]
+    # 0.13 s: the last frame is at 0.12 s, the events run to the end.
+    args = ["simulate", "--preset", "tiny", "--out", str(out), "--no-progress", "--duration", "0.13"]
     sets = ["--set", "seed=7", "--set", "c_on=0.3", "--set", "distortion=-0.1,0.01,0,0,0"]
     assert main([*args, "--trajectory", "approach", *sets]) == 0
     seq = Sequence.load(out)
     assert seq.camera.distortion == (-0.1, 0.01, 0.0, 0.0, 0.0)
-    assert len(seq.frames_us()) == 4
+    np.testing.assert_array_equal(seq.frames_us(), [0, 40_000, 80_000, 120_000])
+    assert seq.events().t[-1] > 120_000
     assert seq.meta["simulator"]["trajectory"] == "approach" and seq.meta["simulator"]["seed"] == 7
     assert seq.meta["simulator"]["c_on"] == 0.3
     assert "events" in capsys.readouterr().out
@@ -90,6 +92,8 @@ def test_cli_overrides_and_errors(tmp_path, capsys):
     assert "unknown setting 'nonsense'" in capsys.readouterr().err
     assert main([*args, "--set", "c_on=abc"]) == 2
     assert "cannot read 'abc' as float" in capsys.readouterr().err
+    assert main([*args, "--set", "frame_rate=0"]) == 2
+    assert "setting frame_rate = 0.0: must be > 0" in capsys.readouterr().err
     assert main([*args, "--target", str(tmp_path / "missing.obj")]) == 2
     assert "neither a built-in" in capsys.readouterr().err
 

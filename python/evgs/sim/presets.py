@@ -11,6 +11,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from evgs.data.sequence import Camera
+from evgs.sim.lights import LIGHTING
 from evgs.sim.trajectory import ReplayTrajectory, Trajectory
 
 
@@ -71,6 +72,24 @@ class SimConfig:
     @property
     def camera(self) -> Camera:
         return Camera(self.width, self.height, self.fx, self.fy, self.cx, self.cy, self.distortion)
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first setting that cannot work (the Rust core checks the sensor
+        model, the trajectory its own parameters)."""
+        checks = [
+            ("lighting", self.lighting in LIGHTING, f"one of {', '.join(LIGHTING)}"),
+            ("width", self.width > 0 and self.height > 0, "a positive sensor size"),
+            ("frame_rate", self.frame_rate > 0, "> 0"),
+            ("range_rate", self.range_rate > 0, "> 0"),
+            ("change_fraction", self.change_fraction > 0, "> 0"),
+            ("change_quantile", 0.0 <= self.change_quantile <= 1.0, "in [0, 1]"),
+            ("max_px_per_frame", self.max_px_per_frame > 0, "> 0"),
+            ("dt_min_us", 1 <= self.dt_min_us <= self.dt_max_us, "≥ 1 and ≤ dt_max_us"),
+            ("msaa", self.msaa >= 0, "≥ 0"),
+        ]
+        for name, ok, need in checks:
+            if not ok:
+                raise ValueError(f"setting {name} = {getattr(self, name)!r}: must be {need}")
 
     def make_trajectory(self) -> Trajectory | ReplayTrajectory:
         if self.poses:

@@ -57,15 +57,14 @@ class _MotionBound:
 def simulate(cfg: SimConfig, out: str | Path, *, progress: bool = True) -> Sequence:
     """Simulate ``cfg`` into the sequence folder ``out`` (written atomically) and return it. Timing and
     counts land in ``sequence.toml`` under ``[simulator.stats]``."""
-    if cfg.lighting not in LIGHTING:
-        raise ValueError(f"unknown lighting {cfg.lighting!r} (choose from {', '.join(LIGHTING)})")
+    cfg.validate()
     camera = cfg.camera
     scene = make_scene(cfg.target, cfg.material, cfg.mesh_scale)
     trajectory = cfg.make_trajectory()
     t_end_us = round(trajectory.t_end * 1e6)
     frames_us = _regular_times(cfg.frame_rate, t_end_us)
     range_us = _regular_times(cfg.range_rate, t_end_us)
-    required = np.union1d(frames_us, range_us)
+    required = np.union1d(np.union1d(frames_us, range_us), [t_end_us])
     frame_set, range_set = set(frames_us.tolist()), set(range_us.tolist())
     if len(frames_us) < 2:
         raise ValueError(f"duration {trajectory.t_end} s gives fewer than 2 frames at {cfg.frame_rate} Hz")
