@@ -14,7 +14,7 @@ from evgs.sim.presets import SimConfig
 from evgs.sim.render import Renderer
 from evgs.sim.scene import build_scene, hubble, load_mesh, make_scene, satellite
 from evgs.sim.simulate import project
-from evgs.sim.trajectory import ReplayTrajectory, Trajectory
+from evgs.sim.trajectory import ReplayTrajectory, Trajectory, look_at
 
 MARKER = np.array([0.4, -0.3, 0.25])
 # Flat light from everywhere: a paint surface renders uniformly, so a blob's centroid is its centre.
@@ -143,3 +143,18 @@ def test_any_mesh_file_can_be_the_target(tmp_path):
         load_mesh(tmp_path / "bad.obj")
     with pytest.raises(ValueError, match="unknown material"):
         load_mesh(tmp_path / "box.ply", material="gold")
+
+
+def test_sun_casts_shadows():
+    floor = trimesh.creation.box(extents=(4.0, 4.0, 0.02))
+    floor.apply_translation([0.0, 0.0, -0.01])
+    blocker = trimesh.creation.box(extents=(1.0, 1.0, 0.1))
+    blocker.apply_translation([0.0, 0.0, 1.0])
+    scene = build_scene([(floor, MATERIAL_IDS["paint"]), (blocker, MATERIAL_IDS["paint"])])
+    cam = SimConfig("t").with_resolution(320, 240).camera
+    T = look_at(np.array([4.0, 0.0, 3.0]))
+    with Renderer(scene, cam, Lighting(sun_dir=(0.0, 0.0, 1.0), sun=1.0)) as r:
+        img = r.render(T)
+    shadowed, lit = np.round(project(cam, T, np.array([[-0.2, 0.1, 0.0], [1.5, -0.5, 0.0]]))).astype(int)
+    assert img[lit[1], lit[0]] == pytest.approx(0.7, abs=0.05)  # paint albedo under a zenith sun
+    assert img[shadowed[1], shadowed[0]] == 0.0  # no fill, no ambient: pure shadow
