@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from evgs.sim.presets import PRESETS, SimConfig, preset
+if TYPE_CHECKING:
+    from evgs.sim.presets import SimConfig
 
 # Shortcut flags: (flag, config field).
 _SHORTCUTS = (
@@ -29,7 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Render a target along a trajectory, generate events (ESIM) and write a sequence "
         "folder with ground-truth poses, images and range.",
     )
-    p.add_argument("--preset", default="orbit_ambient", help=f"one of: {', '.join(PRESETS)}")
+    p.add_argument("--preset", default="orbit_ambient", help="preset name (see --list)")
     p.add_argument("--out", type=Path, help="output folder (default: data/synthetic/<preset>)")
     for flag, field in _SHORTCUTS:
         p.add_argument(flag, dest=field, help=f"override the preset's {field}")
@@ -44,6 +46,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def configure(args: argparse.Namespace) -> SimConfig:
     """The preset with every command-line override applied."""
+    from evgs.sim.presets import preset
+
     cfg = preset(args.preset)
     if args.resolution:
         try:
@@ -63,7 +67,9 @@ def configure(args: argparse.Namespace) -> SimConfig:
 
 
 def run(args: argparse.Namespace) -> int:
-    from evgs.sim.simulate import simulate  # imports the renderer only when simulating
+    # Imported here: scipy, trimesh and moderngl load only when simulating.
+    from evgs.sim.presets import PRESETS, SimConfig
+    from evgs.sim.simulate import simulate
 
     if args.list:
         for name, cfg in PRESETS.items():
