@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import trimesh
 from evgs.data.tum import write_tum
+from evgs.sim.driver import project
 from evgs.sim.lights import Lighting
 from evgs.sim.materials import MATERIAL_IDS
 from evgs.sim.presets import SimConfig
 from evgs.sim.render import Renderer
 from evgs.sim.scene import build_scene, hubble, load_mesh, make_scene, satellite
-from evgs.sim.simulate import project
 from evgs.sim.trajectory import ReplayTrajectory, Trajectory, look_at
 
 MARKER = np.array([0.4, -0.3, 0.25])

@@ -68,6 +68,14 @@ def test_tiny_ground_truth(tiny):
     assert np.all((rd > cfg.distance - 2.0) & (rd < cfg.distance))
 
 
+def test_package_exposes_the_functions():
+    import evgs.sim
+    import evgs.sim.driver  # noqa: F401  (a submodule must not shadow the function of the same name)
+
+    assert callable(evgs.sim.simulate) and callable(evgs.sim.ensure_sequence)
+    assert evgs.sim.preset("tiny") is evgs.sim.PRESETS["tiny"]
+
+
 def test_ensure_sequence_reuses_the_folder(tiny):
     root, folder = tiny
     stamp = (folder / "events.parquet").stat().st_mtime_ns

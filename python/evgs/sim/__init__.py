@@ -10,15 +10,15 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from evgs.sim.driver import ensure_sequence, simulate
     from evgs.sim.presets import PRESETS, SimConfig, preset
-    from evgs.sim.simulate import ensure_sequence, simulate
 
 _LAZY = {
     "PRESETS": "evgs.sim.presets",
     "SimConfig": "evgs.sim.presets",
     "preset": "evgs.sim.presets",
-    "ensure_sequence": "evgs.sim.simulate",
-    "simulate": "evgs.sim.simulate",
+    "ensure_sequence": "evgs.sim.driver",
+    "simulate": "evgs.sim.driver",
 }
 
 __all__ = ["PRESETS", "SimConfig", "ensure_sequence", "preset", "simulate"]

@@ -68,8 +68,8 @@ def configure(args: argparse.Namespace) -> SimConfig:
 
 def run(args: argparse.Namespace) -> int:
     # Imported here: scipy, trimesh and moderngl load only when simulating.
+    from evgs.sim.driver import simulate
     from evgs.sim.presets import PRESETS, SimConfig
-    from evgs.sim.simulate import simulate
 
     if args.list:
         for name, cfg in PRESETS.items():
