@@ -1,9 +1,24 @@
 #!/usr/bin/env bash
-# Create (or reuse) the project's virtualenv and print its path.
+# Install what the project needs: system packages, then (or reuse) the virtualenv; print its path.
 # The venv lives outside the clone, keyed by a hash of the declared dependencies, so a fresh clone on
 # a machine that already built it reuses it, and a change to the dependencies builds a new one.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+
+# System libraries: the simulator renders headless with OpenGL on EGL through Mesa's software
+# driver (llvmpipe).
+sys_pkgs=(libegl1 libgl1-mesa-dri libegl-mesa0)
+missing=()
+for p in "${sys_pkgs[@]}"; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done
+if [ ${#missing[@]} -gt 0 ]; then
+  if [ "$(id -u)" = 0 ]; then
+    echo "evgs: installing system packages: ${missing[*]}" >&2
+    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
+        "${missing[@]}"; } >&2
+  else
+    echo "evgs: missing system packages (the simulator needs them): sudo apt-get install ${missing[*]}" >&2
+  fi
+fi
 py=${PYTHON:-python3}
 key=$("$py" - <<'PY'
 import hashlib, sys, tomllib
