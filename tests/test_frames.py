@@ -42,7 +42,10 @@ def add_at_frames(ev: EventArray, starts, ends, c_on: float, c_off: float, f: in
         pos = ev.p[s:e] > 0
         np.add.at(on, idx[pos], 1)
         np.add.at(off, idx[~pos], 1)
-        frame = np.float32(c_on) * on.astype(np.float32) - np.float32(c_off) * off.astype(np.float32)
+        if c_on == c_off:  # one C: the frame is C·Σp rounded once
+            frame = np.float32(c_on) * (on - off).astype(np.float32)
+        else:
+            frame = np.float32(c_on) * on.astype(np.float32) - np.float32(c_off) * off.astype(np.float32)
         out[b] = frame.reshape(h, w)
     return out
 
@@ -163,9 +166,10 @@ def test_reference_mode_follows_linspace():
 def test_accumulate_matches_np_add_at(f):
     ev = random_events(60_000, 45, 31, 1)
     starts, ends = WindowSampler(len(ev), 1, 20_000, seed=5).sample(6)
-    starts, ends = np.append(starts, [0, 17]), np.append(ends, [len(ev), 17])  # whole stream, empty
+    # whole stream, a sparse window (few events for the frame size), an empty one
+    starts, ends = np.append(starts, [0, 500, 17]), np.append(ends, [len(ev), 600, 17])
     frames = accumulate(ev, starts, ends, c_on=0.3, c_off=0.1, downsample=f)
-    assert frames.dtype == np.float32 and frames.shape == (8, -(-31 // f), -(-45 // f))
+    assert frames.dtype == np.float32 and frames.shape == (9, -(-31 // f), -(-45 // f))
     np.testing.assert_array_equal(frames, add_at_frames(ev, starts, ends, 0.3, 0.1, f))
     assert np.all(frames[-1] == 0)
     # c_off defaults to c_on: the paper's single symmetric C.
@@ -292,3 +296,14 @@ def test_results_identical_for_one_and_two_threads():
         digests.append(out.stdout.strip())
     assert len(digests[0]) == 64 and digests[0] == digests[1]
     assert hashlib.sha256(b"").hexdigest() not in digests
+
+
+def test_out_buffer_is_overwritten_and_returned():
+    ev = random_events(30_000, 40, 30, 4)
+    starts, ends = np.array([0, 100, 29_000]), np.array([30_000, 130, 29_010])  # dense, sparse, sparse
+    out = np.full((3, 15, 20), np.nan, np.float32)
+    got = accumulate(ev, starts, ends, c_on=0.5, downsample=2, out=out)
+    assert got is out
+    np.testing.assert_array_equal(out, add_at_frames(ev, starts, ends, 0.5, 0.5, 2))
+    with pytest.raises(ValueError, match=r"shape \(3, 15, 20\)"):
+        accumulate(ev, starts, ends, out=np.zeros((3, 30, 40), np.float32), downsample=2)
