@@ -166,7 +166,7 @@ def test_reference_mode_follows_linspace():
 def test_accumulate_matches_np_add_at(f):
     ev = random_events(60_000, 45, 31, 1)
     starts, ends = WindowSampler(len(ev), 1, 20_000, seed=5).sample(6)
-    # whole stream, a sparse window (few events for the frame size), an empty one
+    # whole stream, a small window, an empty one
     starts, ends = np.append(starts, [0, 500, 17]), np.append(ends, [len(ev), 600, 17])
     frames = accumulate(ev, starts, ends, c_on=0.3, c_off=0.1, downsample=f)
     assert frames.dtype == np.float32 and frames.shape == (9, -(-31 // f), -(-45 // f))
@@ -300,7 +300,7 @@ def test_results_identical_for_one_and_two_threads():
 
 def test_out_buffer_is_overwritten_and_returned():
     ev = random_events(30_000, 40, 30, 4)
-    starts, ends = np.array([0, 100, 29_000]), np.array([30_000, 130, 29_010])  # dense, sparse, sparse
+    starts, ends = np.array([0, 100, 29_000]), np.array([30_000, 130, 29_010])
     out = np.full((3, 15, 20), np.nan, np.float32)
     got = accumulate(ev, starts, ends, c_on=0.5, downsample=2, out=out)
     assert got is out

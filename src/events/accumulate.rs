@@ -7,9 +7,6 @@
 //! is cut into fixed-size event sub-ranges counted in parallel and summed in order. Integer sums do not
 //! depend on grouping, so the frame is bitwise identical for any thread count (tests compare 1 and 2).
 //!
-//! With separate counts, windows with few events relative to the frame size are finished sparsely: a
-//! second pass over the window's events writes and clears only the touched cells.
-//!
 //! Undistortion (optional) uses a per-pixel map (see [`super::undistort`]): counts are kept at the raw
 //! sensor pixels and each pixel's value `C_on·n_on − C_off·n_off` is then splatted bilinearly at its
 //! undistorted position. That is exactly a bilinear splat of every event, at O(pixels) instead of
@@ -31,9 +28,6 @@ use crate::error::{Error, Result};
 /// A window is split into event sub-ranges of at least this many events (more for large images, so that
 /// merging the per-part count buffers stays cheap next to counting).
 const MIN_PART_EVENTS: usize = 1 << 20;
-/// Finish a window sparsely (per event) when it has fewer than `pixels / SPARSE_RATIO` events: one
-/// random access per event beats streaming over every pixel until then.
-const SPARSE_RATIO: usize = 4;
 
 /// How events become frame values.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -152,15 +146,9 @@ pub fn accumulate_into(
             }
             let mut counts = pool::take(cells);
             let bad = count_window::<false>(ev, s..e, grid, &mut counts, split);
-            let sparse = (e - s) * SPARSE_RATIO < frame.len();
             let dropped = match map {
-                None if !sparse => {
-                    to_frame(&mut counts, frame, params);
-                    0
-                }
                 None => {
-                    frame.fill(0.0);
-                    to_frame_sparse(ev, s..e, grid, &mut counts, frame, params);
+                    to_frame(&mut counts, frame, params);
                     0
                 }
                 Some(m) => {
@@ -301,29 +289,6 @@ fn to_frame(counts: &mut [u32], frame: &mut [f32], p: FrameParams) {
     for (v, c) in frame.iter_mut().zip(counts.chunks_exact_mut(2)) {
         *v = value(c, p);
         c.fill(0);
-    }
-}
-
-/// Only the cells the window's events touched → frame values (the rest of `frame` stays 0); clears them.
-fn to_frame_sparse(
-    ev: EventsView<'_>,
-    range: std::ops::Range<usize>,
-    g: Grid,
-    counts: &mut [u32],
-    frame: &mut [f32],
-    p: FrameParams,
-) {
-    for (&x, &y) in ev.x[range.clone()].iter().zip(&ev.y[range]) {
-        let (x, y) = (usize::from(x), usize::from(y));
-        if x >= g.w || y >= g.h {
-            continue;
-        }
-        let pix = (y >> g.shift) * g.cw + (x >> g.shift);
-        let c = &mut counts[2 * pix..2 * pix + 2];
-        if c[0] != 0 || c[1] != 0 {
-            frame[pix] = value(c, p);
-            c.fill(0);
-        }
     }
 }
 
