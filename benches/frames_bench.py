@@ -13,8 +13,9 @@ import os
 import time
 
 import numpy as np
+from evgs.data.sequence import Camera
 from evgs.events.arrays import EventArray
-from evgs.events.frames import WindowSampler, accumulate
+from evgs.events.frames import UndistortMap, WindowSampler, accumulate
 
 W, H, N = 640, 480, 20_000_000
 C = 0.1
@@ -66,39 +67,48 @@ def numpy_add_at(ev: EventArray, starts: np.ndarray, ends: np.ndarray) -> np.nda
     return out.reshape(-1, H, W)
 
 
+def rates(ev: EventArray, umap: UndistortMap, starts: np.ndarray, ends: np.ndarray) -> list[float]:
+    """M events/s of every column for one batch of windows."""
+    n_ev = float((ends - starts).sum())
+    out = np.empty((len(starts), H, W), np.float32)
+    wall, cpu = best(lambda: accumulate(ev, starts, ends, c_on=C, out=out), 3)
+    fresh, _ = best(lambda: accumulate(ev, starts, ends, c_on=C), 3)
+    asym, _ = best(lambda: accumulate(ev, starts, ends, c_on=C, c_off=0.2, out=out), 3)
+    und, _ = best(lambda: accumulate(ev, starts, ends, c_on=C, undistort=umap, out=out), 3)
+    bc, _ = best(lambda: numpy_bincount(ev, starts, ends), 1)
+    k = min(len(starts), 2)  # np.add.at is slow: time two windows
+    aa, _ = best(lambda: numpy_add_at(ev, starts[:k], ends[:k]), 1)
+    n_aa = float((ends[:k] - starts[:k]).sum())
+    return [
+        x / 1e6
+        for x in (n_ev / wall, n_ev / cpu, n_ev / fresh, n_ev / asym, n_ev / und, n_ev / bc, n_aa / aa)
+    ]
+
+
 def main() -> None:
     rng = np.random.default_rng(0)
     threads = os.environ.get("RAYON_NUM_THREADS", str(os.cpu_count()))
     print(f"event frames, {W}x{H}, C = {C}, rayon threads = {threads}; M events/s (best of 3)")
-    header = f"{'events':<8} {'windows':<16} {'evgs out=':>10} {'(cpu)':>7} {'evgs new':>9}"
-    header += f" {'C_on≠C_off':>11} {'undist.':>8} {'bincount':>9} {'add.at':>7}"
-    print(header)
+    cols = {
+        "evgs out=": 10,
+        "(cpu)": 7,
+        "evgs new": 9,
+        "C_on≠C_off": 11,
+        "undist.": 8,
+        "bincount": 9,
+        "add.at": 7,
+    }
+    print(f"{'events':<8} {'windows':<16} " + " ".join(f"{k:>{w}}" for k, w in cols.items()))
+    umap = UndistortMap.from_camera(Camera(W, H, 500.0, 500.0, 319.5, 239.5, (-0.2, 0.05, 0.0, 0.0, 0.0)))
     for dist, ev in (("uniform", uniform_events(rng)), ("edge", edge_events(rng))):
-        from evgs.data.sequence import Camera
-        from evgs.events.frames import UndistortMap
-
-        umap = UndistortMap.from_camera(Camera(W, H, 500.0, 500.0, 319.5, 239.5, (-0.2, 0.05, 0.0, 0.0, 0.0)))
         for w_lo, w_hi, batch in ((50_000, 50_000, 32), (200_000, 200_000, 16), (2_000_000, 2_000_000, 4),
                                   (50_000, 2_000_000, 8), (2_000_000, 2_000_000, 1)):  # fmt: skip
             starts, ends = WindowSampler(N, w_lo, w_hi, seed=1).sample(batch)
-            n_ev = float((ends - starts).sum())
-            out = np.empty((batch, H, W), np.float32)
-            wall, cpu = best(lambda s=starts, e=ends, o=out: accumulate(ev, s, e, c_on=C, out=o), 3)
-            fresh, _ = best(lambda s=starts, e=ends: accumulate(ev, s, e, c_on=C), 3)
-            asym, _ = best(lambda s=starts, e=ends, o=out: accumulate(ev, s, e, c_on=C, c_off=0.2, out=o), 3)
-            und, _ = best(
-                lambda s=starts, e=ends, o=out: accumulate(ev, s, e, c_on=C, undistort=umap, out=o), 3
-            )
-            bc, _ = best(lambda s=starts, e=ends: numpy_bincount(ev, s, e), 1)
-            k = min(batch, 2)  # np.add.at is slow: time two windows
-            aa, _ = best(lambda s=starts[:k], e=ends[:k]: numpy_add_at(ev, s, e), 1)
-            n_aa = float((ends[:k] - starts[:k]).sum())
             label = f"{w_lo // 1000}k" + (f"-{w_hi // 1000}k" if w_hi != w_lo else "") + f" x{batch}"
-            rates = [n_ev / wall, n_ev / cpu, n_ev / fresh, n_ev / asym, n_ev / und, n_ev / bc, n_aa / aa]
-            cols = [10, 7, 9, 11, 8, 9, 7]
+            row = rates(ev, umap, starts, ends)
             print(
                 f"{dist:<8} {label:<16} "
-                + " ".join(f"{r / 1e6:>{c}.0f}" for r, c in zip(rates, cols, strict=True))
+                + " ".join(f"{r:>{w}.0f}" for r, w in zip(row, cols.values(), strict=True))
             )
 
 
