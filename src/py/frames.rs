@@ -86,7 +86,9 @@ impl PyWindowSampler {
 /// frames are written there and `out` is returned.
 #[allow(clippy::too_many_arguments)]
 #[pyfunction]
-#[pyo3(signature = (t, x, y, p, width, height, starts, ends, c_on, c_off, downsample_log2 = 0, undistort_map = None, out = None))]
+#[pyo3(signature = (
+    t, x, y, p, width, height, starts, ends, c_on, c_off, downsample_log2 = 0, undistort_map = None, out = None
+))]
 fn accumulate_frames<'py>(
     py: Python<'py>,
     t: PyReadonlyArray1<'_, i64>,
