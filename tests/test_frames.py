@@ -177,6 +177,33 @@ def test_accumulate_matches_np_add_at(f):
     np.testing.assert_array_equal(sym, add_at_frames(ev, starts[:2], ends[:2], 0.2, 0.2, f))
 
 
+@settings(max_examples=60, deadline=None)
+@given(
+    n=st.integers(0, 3000),
+    width=st.integers(1, 40),
+    height=st.integers(1, 40),
+    f=st.sampled_from([1, 2, 4]),
+    c=st.sampled_from([(0.1, 0.1), (1.0, 1.0), (0.3, 0.05), (0.0, 2.5)]),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_accumulate_property(n, width, height, f, c, seed):
+    ev = random_events(n, width, height, seed)
+    rng = np.random.default_rng(seed)
+    bounds = np.sort(rng.integers(0, n + 1, (5, 2)), axis=1)
+    starts, ends = bounds[:, 0], bounds[:, 1]
+    got = accumulate(ev, starts, ends, c_on=c[0], c_off=c[1], downsample=f)
+    np.testing.assert_array_equal(got, add_at_frames(ev, starts, ends, c[0], c[1], f))
+
+
+def test_sampling_a_sliding_window_of_chunks():
+    ev = random_events(20_000, 8, 8, 6)
+    ranges = chunk_ranges(ev.t, np.linspace(0, ev.t[-1], 11).astype(np.int64))
+    lo, hi = ranges[3, 0], ranges[6, 1]  # chunks 3..6
+    s, e = WindowSampler((lo, hi), 100, 1500, seed=2).sample(500)
+    assert np.all((s >= lo) & (e <= hi) & (e - s >= 100) & (e - s <= 1500))
+    assert np.all(ev.t[s] >= np.linspace(0, ev.t[-1], 11).astype(np.int64)[3])
+
+
 def test_accumulate_rejects_bad_input():
     ev = random_events(100, 8, 8, 2)
     with pytest.raises(ValueError, match=r"window 1 = \[50, 101\) is not inside \[0, 100\)"):
@@ -271,10 +298,11 @@ from evgs.events.arrays import EventArray
 from evgs.events.frames import UndistortMap, WindowSampler, accumulate
 
 rng = np.random.default_rng(0)
-n = 2_500_000  # windows over 1 M events are split into parts counted in parallel
+n = 2_500_000
 ev = EventArray(np.arange(n, dtype=np.int64), rng.integers(0, 64, n).astype(np.uint16),
                 rng.integers(0, 48, n).astype(np.uint16), rng.choice(np.array([-1, 1], np.int8), n), 64, 48)
-s, e = WindowSampler(n, 1000, 2_400_000, seed=11).sample(6)
+# 3 windows of > 1 M events: one thread counts each whole, two threads split them into parts.
+s, e = WindowSampler(n, 1_100_000, 2_400_000, seed=11).sample(3)
 cam = Camera(64, 48, 60.0, 60.0, 31.5, 23.5, (-0.25, 0.05, 0.0, 0.0, 0.0))
 h = hashlib.sha256()
 for arr in (s, e, accumulate(ev, s, e, c_on=0.3, c_off=0.2),
