@@ -371,7 +371,7 @@ fn decode_rows(layout: &NpyLayout, data: &[u8], first_row: u64, path: &str, out:
         let p = match fp.scalar.read(&row[fp.offset..], fp.big_endian) {
             Num::I(1) => 1,
             Num::I(0 | -1) => -1,
-            Num::F(v) if v == 1.0 => 1,
+            Num::F(1.0) => 1,
             Num::F(v) if v == 0.0 || v == -1.0 => -1,
             Num::I(v) => return Err(format!("polarity {v} is not one of 0/1, -1/+1")),
             Num::F(v) => return Err(format!("polarity {v} is not one of 0/1, -1/+1")),
