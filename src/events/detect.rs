@@ -61,6 +61,23 @@ impl Format {
 
 const AEDAT4_MAGIC: &[u8] = b"#!AER-DAT4.0\r\n";
 
+/// Bytes read for detection and headers (RAW/AEDAT 4 headers and text sniffing fit easily).
+pub const HEAD: usize = 1 << 20;
+
+/// Read the first [`HEAD`] bytes of `file` (fewer if it is shorter).
+pub fn read_head(file: &mut std::fs::File, path: &str) -> Result<Vec<u8>> {
+    use std::io::Read;
+    let mut head = Vec::with_capacity(HEAD);
+    file.take(HEAD as u64).read_to_end(&mut head).map_err(|e| Error::io(path, e))?;
+    Ok(head)
+}
+
+/// Detect the format of the file at `path` from its content.
+pub fn detect_file(path: &str) -> Result<Format> {
+    let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    detect(&read_head(&mut file, path)?, path)
+}
+
 /// Detect the format of a file from its first bytes (`head`: 1 MiB or the whole file if smaller).
 pub fn detect(head: &[u8], path: &str) -> Result<Format> {
     let magic: [(&[u8], Format); 5] = [

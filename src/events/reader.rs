@@ -9,16 +9,14 @@ use std::io::Read;
 
 use crate::error::{Error, Result};
 use crate::events::aedat4::{parse_aedat4_header, Aedat4Decoder};
-use crate::events::detect::{detect, Format};
+use crate::events::detect::{detect, read_head, Format};
 use crate::events::evt2::Evt2Decoder;
 use crate::events::evt3::Evt3Decoder;
 use crate::events::npy::{parse_npy_header, NpyDecoder};
 use crate::events::raw_header::{parse_raw_header, DecodeStats};
-use crate::events::text::{TextDecoder, TextOptions};
-use crate::events::{Decoder, Events};
+use crate::events::text::{TextDecoder, TextLayout, TextOptions};
+use crate::events::{Decoder, Events, EventsView};
 
-/// Bytes read for detection and headers (RAW/AEDAT 4 headers and text sniffing fit easily).
-const HEAD: usize = 1 << 20;
 /// Bytes read per block.
 const BLOCK: usize = 16 << 20;
 
@@ -31,6 +29,87 @@ pub struct ReadOptions {
     pub drop_outside: bool,
     /// EVT 2.0/3.0: make times relative to the first TIME_HIGH (Metavision's default; evgs's is off).
     pub time_shift: bool,
+}
+
+/// Per-batch checks shared by every reader (Rust-decoded here, Python-decoded through the binding):
+/// coordinates inside the sensor (or dropped and counted), and optionally non-decreasing time.
+#[derive(Debug, Clone, Default)]
+pub struct BatchCheck {
+    /// Names the data in errors.
+    pub path: String,
+    /// Sensor size; 0 = unknown (no bounds check).
+    pub width: u32,
+    pub height: u32,
+    pub drop_outside: bool,
+    pub require_sorted: bool,
+    /// Events examined so far (kept and dropped): the file position of the next one.
+    pub seen: u64,
+    /// Events dropped as outside the sensor.
+    pub dropped: u64,
+    last_t: Option<i64>,
+}
+
+impl BatchCheck {
+    pub fn new(path: &str, width: u32, height: u32, drop_outside: bool, require_sorted: bool) -> Self {
+        BatchCheck {
+            path: path.to_owned(),
+            width,
+            height,
+            drop_outside,
+            require_sorted,
+            ..Default::default()
+        }
+    }
+
+    /// Check the next batch. Returns the indices to keep when some events were dropped.
+    pub fn check(&mut self, v: EventsView<'_>) -> Result<Option<Vec<usize>>> {
+        let (w, h) = (self.width, self.height);
+        let outside = |i: usize| (w > 0 && u32::from(v.x[i]) >= w) || (h > 0 && u32::from(v.y[i]) >= h);
+        let first_out = if w > 0 || h > 0 { (0..v.len()).find(|&i| outside(i)) } else { None };
+        let keep = match first_out {
+            None => None,
+            Some(i) if !self.drop_outside => {
+                return Err(Error::format(
+                    &self.path,
+                    format!("event {}", self.seen + i as u64),
+                    format!(
+                        "({}, {}) outside the {w}x{h} sensor (drop_outside drops such events)",
+                        v.x[i], v.y[i]
+                    ),
+                ))
+            }
+            Some(_) => Some((0..v.len()).filter(|&i| !outside(i)).collect::<Vec<_>>()),
+        };
+        if self.require_sorted {
+            let mut prev = self.last_t;
+            let mut bad = None;
+            let mut visit = |i: usize| {
+                if bad.is_none() && prev.is_some_and(|q| v.t[i] < q) {
+                    bad = Some((i, prev.unwrap_or(0)));
+                }
+                prev = Some(v.t[i]);
+            };
+            match &keep {
+                Some(k) => k.iter().for_each(|&i| visit(i)),
+                None => (0..v.len()).for_each(visit),
+            }
+            if let Some((i, q)) = bad {
+                return Err(Error::format(
+                    &self.path,
+                    format!("event {}", self.seen + i as u64),
+                    format!("time goes backwards ({} < previous {q})", v.t[i]),
+                ));
+            }
+        }
+        let last = match &keep {
+            Some(k) => k.last().map(|&i| v.t[i]),
+            None => v.t.last().copied(),
+        };
+        self.last_t = last.or(self.last_t);
+        self.seen += v.len() as u64;
+        self.dropped += keep.as_ref().map_or(0, |k| (v.len() - k.len()) as u64);
+        Ok(keep)
+    }
 }
 
 enum AnyDecoder {
@@ -67,12 +146,7 @@ pub struct EventReader {
     pending: Events,
     width: u32,
     height: u32,
-    drop_outside: bool,
-    require_sorted: bool,
-    /// Events handed out so far (and dropped), for positions in error messages.
-    emitted: u64,
-    dropped_outside: u64,
-    last_t: Option<i64>,
+    check: BatchCheck,
 }
 
 impl EventReader {
@@ -80,8 +154,7 @@ impl EventReader {
     pub fn open(path: &str, format: Option<Format>, opts: &ReadOptions) -> Result<Self> {
         let mut file = File::open(path).map_err(|e| Error::io(path, e))?;
         let file_size = file.metadata().map_err(|e| Error::io(path, e))?.len();
-        let mut head = Vec::with_capacity(HEAD);
-        (&mut file).take(HEAD as u64).read_to_end(&mut head).map_err(|e| Error::io(path, e))?;
+        let mut head = read_head(&mut file, path)?;
         let format = match format {
             Some(f) => f,
             None => detect(&head, path)?,
@@ -137,11 +210,13 @@ impl EventReader {
             pending: Events::with_capacity(0, width, height),
             width,
             height,
-            drop_outside: opts.drop_outside,
-            require_sorted: t.require_sorted,
-            emitted: 0,
-            dropped_outside: 0,
-            last_t: None,
+            // Text files check bounds and order line by line (unless dropping), naming the line.
+            check: if format == Format::Text {
+                let (w, h) = if opts.drop_outside { (width, height) } else { (0, 0) };
+                BatchCheck::new(path, w, h, opts.drop_outside, false)
+            } else {
+                BatchCheck::new(path, width, height, opts.drop_outside, t.require_sorted)
+            },
         })
     }
 
@@ -168,7 +243,15 @@ impl EventReader {
 
     /// Events dropped because they were outside the sensor (only with `drop_outside`).
     pub fn dropped_outside(&self) -> u64 {
-        self.dropped_outside
+        self.check.dropped
+    }
+
+    /// The sniffed layout of a text file.
+    pub fn text_layout(&self) -> Option<&TextLayout> {
+        match &self.decoder {
+            AnyDecoder::Text(d) => Some(d.layout()),
+            _ => None,
+        }
     }
 
     /// What the camera decoder skipped (triggers, words before the first time base, ...).
@@ -212,48 +295,25 @@ impl EventReader {
     /// Sortedness and sensor bounds of the events appended since `from`.
     fn check_new(&mut self, from: usize) -> Result<()> {
         let p = &mut self.pending;
-        // File position of pending[i] (exact unless events were dropped inside this batch).
-        let base = self.emitted + self.dropped_outside;
-        let (w, h) = (self.width, self.height);
-        if (w > 0 || h > 0) && self.format != Format::Text || self.drop_outside {
-            let outside = |x: u16, y: u16| (w > 0 && u32::from(x) >= w) || (h > 0 && u32::from(y) >= h);
-            if let Some(i) = (from..p.len()).find(|&i| outside(p.x[i], p.y[i])) {
-                if !self.drop_outside {
-                    return Err(Error::format(
-                        &self.path,
-                        format!("event {}", base + i as u64),
-                        format!(
-                            "({}, {}) outside the {w}x{h} sensor (use drop_outside to drop such events)",
-                            p.x[i], p.y[i]
-                        ),
-                    ));
-                }
-                let mut k = i;
-                for j in i..p.len() {
-                    if !outside(p.x[j], p.y[j]) {
-                        (p.t[k], p.x[k], p.y[k], p.p[k]) = (p.t[j], p.x[j], p.y[j], p.p[j]);
-                        k += 1;
-                    }
-                }
-                self.dropped_outside += (p.len() - k) as u64;
-                p.t.truncate(k);
-                p.x.truncate(k);
-                p.y.truncate(k);
-                p.p.truncate(k);
+        let v = EventsView {
+            t: &p.t[from..],
+            x: &p.x[from..],
+            y: &p.y[from..],
+            p: &p.p[from..],
+            width: 0,
+            height: 0,
+        };
+        if let Some(keep) = self.check.check(v)? {
+            for (k, &j) in keep.iter().enumerate() {
+                let j = from + j;
+                (p.t[from + k], p.x[from + k], p.y[from + k], p.p[from + k]) =
+                    (p.t[j], p.x[j], p.y[j], p.p[j]);
             }
-        }
-        if self.require_sorted && self.format != Format::Text {
-            let mut prev = if from > 0 { Some(p.t[from - 1]) } else { self.last_t };
-            for i in from..p.len() {
-                if prev.is_some_and(|q| p.t[i] < q) {
-                    return Err(Error::format(
-                        &self.path,
-                        format!("event {}", base + i as u64),
-                        format!("time goes backwards ({} < previous {})", p.t[i], prev.unwrap()),
-                    ));
-                }
-                prev = Some(p.t[i]);
-            }
+            let n = from + keep.len();
+            p.t.truncate(n);
+            p.x.truncate(n);
+            p.y.truncate(n);
+            p.p.truncate(n);
         }
         Ok(())
     }
@@ -281,8 +341,6 @@ impl EventReader {
             };
             std::mem::replace(p, rest)
         };
-        self.last_t = batch.t.last().copied();
-        self.emitted += batch.len() as u64;
         Ok(Some(batch))
     }
 
@@ -292,7 +350,6 @@ impl EventReader {
             self.fill()?;
         }
         let all = std::mem::take(&mut self.pending);
-        self.emitted += all.len() as u64;
         Ok(Events { width: self.width, height: self.height, ..all })
     }
 }
