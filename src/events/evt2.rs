@@ -239,28 +239,10 @@ mod tests {
         assert!(e.contains("f.raw") && e.contains("byte offset 48") && e.contains("(640, 0)"), "{e}");
     }
 
-    fn random_events(n: usize, seed: u64, t_start: i64, max_step: u64) -> Events {
-        let mut s = seed;
-        let mut next = move || {
-            s ^= s << 13;
-            s ^= s >> 7;
-            s ^= s << 17;
-            s
-        };
-        let mut ev = Events::with_capacity(n, 640, 480);
-        let mut t = t_start;
-        for _ in 0..n {
-            t += (next() % (max_step + 1)) as i64;
-            let r = next();
-            ev.push(t, (r % 640) as u16, ((r >> 16) % 480) as u16, if r >> 40 & 1 == 1 { 1 } else { -1 });
-        }
-        ev
-    }
-
     #[test]
     fn round_trip_across_wraps_whole_and_in_pieces() {
-        let mut ev = random_events(5000, 7, (1 << 34) - 20_000, 50);
-        ev.extend(&random_events(100, 9, 3 * (1 << 34) + 5, 100_000_000_000));
+        let mut ev = feed::random_events(5000, 7, (1 << 34) - 20_000, 50, 640, 480);
+        ev.extend(&feed::random_events(100, 9, 3 * (1 << 34) + 5, 100_000_000_000, 640, 480));
         let file = encode_evt2(ev.view());
         let header = parse_raw_header(&file, "f.raw").unwrap();
         assert_eq!((header.encoding, header.width, header.height), (RawEncoding::Evt2, 640, 480));

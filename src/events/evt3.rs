@@ -200,7 +200,7 @@ impl Decoder for Evt3Decoder {
 pub fn encode_evt3(ev: EventsView<'_>) -> Vec<u8> {
     let mut out = write_raw_header(RawEncoding::Evt3, ev.width, ev.height);
     out.reserve(ev.len() * 2 + 64);
-    let mut word = |out: &mut Vec<u8>, kind: u16, v: u32| {
+    let word = |out: &mut Vec<u8>, kind: u16, v: u32| {
         out.extend_from_slice(&((kind << 12) | v as u16).to_le_bytes())
     };
     let (mut high, mut time, mut row): (Option<i64>, Option<i64>, Option<u16>) = (None, None, None);
@@ -359,7 +359,8 @@ mod tests {
         assert!(e.contains("g.raw") && e.contains("byte offset 1008") && e.contains("(653, 1)"), "{e}");
     }
 
-    fn random_events(n: usize, seed: u64) -> Events {
+    /// Random row bursts (what vector groups are for), with time gaps that loop the 24-bit counter.
+    fn bursts(n: usize, seed: u64) -> Events {
         let mut s = seed;
         let mut next = move || {
             s ^= s << 13;
@@ -409,7 +410,7 @@ mod tests {
 
     #[test]
     fn round_trip_across_loops_whole_and_in_pieces() {
-        let ev = random_events(20_000, 11);
+        let ev = bursts(20_000, 11);
         let file = encode_evt3(ev.view());
         let h = parse_raw_header(&file, "f.raw").unwrap();
         assert_eq!((h.encoding, h.width, h.height), (RawEncoding::Evt3, 1280, 720));

@@ -223,4 +223,32 @@ pub(crate) mod feed {
         dec.finish(&pending, pending_offset, &mut out)?;
         Ok(out)
     }
+
+    /// `n` random events (xorshift, seeded) on a `width`×`height` sensor, times from `t_start` with
+    /// steps uniform in `0..=max_step` µs.
+    pub fn random_events(
+        n: usize,
+        seed: u64,
+        t_start: i64,
+        max_step: u64,
+        width: u32,
+        height: u32,
+    ) -> Events {
+        let mut s = seed.max(1);
+        let mut next = move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            s
+        };
+        let mut ev = Events::with_capacity(n, width, height);
+        let mut t = t_start;
+        for _ in 0..n {
+            t += (next() % (max_step + 1)) as i64;
+            let r = next();
+            let p = if (r >> 40) & 1 == 1 { 1 } else { -1 };
+            ev.push(t, (r % u64::from(width)) as u16, ((r >> 16) % u64::from(height)) as u16, p);
+        }
+        ev
+    }
 }
