@@ -128,6 +128,8 @@ def test_drop_outside_counts(tmp_path: Path) -> None:
     ev = src.read_all()
     assert ev.x.tolist() == [1, 2] and src.skipped["dropped_outside"] == 1
     h5 = tmp_path / "e.h5"
-    write_events(h5, EventArray.from_columns({"t": [1, 2, 3], "x": [1, 99, 2], "y": [1, 1, 2], "p": [1, 1, -1]}))
+    write_events(
+        h5, EventArray.from_columns({"t": [1, 2, 3], "x": [1, 99, 2], "y": [1, 1, 2], "p": [1, 1, -1]})
+    )
     src = open_events(h5, width=10, height=10, drop_outside=True)
     assert src.read_all().x.tolist() == [1, 2] and src.skipped["dropped_outside"] == 1

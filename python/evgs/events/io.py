@@ -14,6 +14,7 @@ file's), ``drop_outside``, ``require_sorted``, ``time_unit`` (``s``/``ms``/``us`
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 import tempfile
@@ -92,7 +93,8 @@ class EventSource:
             self._rust = _core.EventReader(self.path, fmt, **options)
             self.width, self.height = self._rust.width, self._rust.height
         else:
-            self._py = _PY_SOURCES[fmt](self.path, **options)
+            with _library_errors(self.path):
+                self._py = _PY_SOURCES[fmt](self.path, **options)
             self.width, self.height = self._py.width, self._py.height
 
     @property
@@ -121,13 +123,26 @@ class EventSource:
             while (cols := self._rust.next_batch(batch_events)) is not None:
                 yield EventArray.from_columns(cols)
         else:
-            yield from self._py.batches(batch_events)
+            with _library_errors(self.path):
+                yield from self._py.batches(batch_events)
 
     def read_all(self) -> EventArray:
         if self._rust:
             return EventArray.from_columns(self._rust.read_all())
-        parts = list(self._py.batches(DEFAULT_BATCH * 16))
+        with _library_errors(self.path):
+            parts = list(self._py.batches(DEFAULT_BATCH * 16))
         return _concat(parts, self.width, self.height)
+
+
+@contextlib.contextmanager
+def _library_errors(path: str) -> Iterator[None]:
+    """Report a reading library's own exception (polars, h5py, zipfile) as a ValueError naming the file."""
+    try:
+        yield
+    except (ValueError, OSError, TypeError):
+        raise
+    except Exception as e:
+        raise ValueError(f"{path}: {type(e).__name__}: {e}") from e
 
 
 def _concat(parts: list[EventArray], width: int, height: int) -> EventArray:
@@ -294,7 +309,9 @@ class _ParquetSource(_PySource):
         schema = pl.read_parquet_schema(self.path)
         for name, dtype in SCHEMA.items():
             if schema.get(name) != dtype:
-                raise ValueError(f"{self.path}: column {name!r} has type {schema.get(name)}, expected {dtype}")
+                raise ValueError(
+                    f"{self.path}: column {name!r} has type {schema.get(name)}, expected {dtype}"
+                )
         size = json.loads(pl.read_parquet_metadata(self.path).get("evgs", "{}"))
         self.width, self.height = int(size.get("width", 0)), int(size.get("height", 0))
         self.n = pl.scan_parquet(self.path).select(pl.len()).collect().item()
@@ -329,7 +346,9 @@ class EventWriter:
         if fmt == "text":
             fmt = "csv"
         if fmt not in WRITE_FORMATS and not fmt.startswith("aedat4"):
-            raise ValueError(f"{path}: cannot tell the output format (pass one of {', '.join(WRITE_FORMATS)})")
+            raise ValueError(
+                f"{path}: cannot tell the output format (pass one of {', '.join(WRITE_FORMATS)})"
+            )
         self.path, self.format, self.width, self.height = Path(path), fmt, width, height
         self.count = 0
         self._atomic = atomic_path(self.path)
