@@ -959,6 +959,18 @@ mod tests {
     }
 
     #[test]
+    fn result_is_independent_of_thread_count() {
+        let ev = feed::random_events(20_000, 5, 0, 3, 128, 128);
+        let file = encode_aedat4(ev.view(), Aedat4Compression::Lz4, 500);
+        let decode_with = |threads| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| decode(&file, file.len()).unwrap().0)
+        };
+        assert_eq!(decode_with(1), ev);
+        assert_eq!(decode_with(3), ev);
+    }
+
+    #[test]
     fn zstd_frames_carry_their_content_size() {
         let data: Vec<u8> = (0..5000u32).map(|i| (i * 7 % 251) as u8).collect();
         let z = compress(&data, Aedat4Compression::Zstd);
