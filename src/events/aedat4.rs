@@ -162,8 +162,8 @@ fn xml_attr<'a>(tag: &'a str, name: &str) -> Option<&'a str> {
 /// The XML is `<dv><node name="outInfo"><node name="ID">` with `<attr key=…>` entries and a child
 /// `<node name="info">` holding `sizeX`/`sizeY`; a small tag scanner is enough for it.
 fn event_stream(xml: &str) -> Walk<(i32, u32, u32)> {
-    // Per stream id, in document order: (typeIdentifier, sizeX, sizeY).
-    let mut streams: Vec<(String, Option<String>, Option<String>, Option<String>)> = Vec::new();
+    // Per stream ID in document order: [typeIdentifier, sizeX, sizeY].
+    let mut streams: Vec<(&str, [Option<&str>; 3])> = Vec::new();
     let mut path: Vec<&str> = Vec::new();
     let mut pos = 0;
     while let Some(lt) = xml[pos..].find('<') {
@@ -189,29 +189,24 @@ fn event_stream(xml: &str) -> Walk<(i32, u32, u32)> {
                 Some(i) if i + 3 == n && path[n - 1] == "info" => (path[n - 2], true),
                 _ => continue,
             };
-            let k = match streams.iter().position(|s| s.0 == id) {
-                Some(k) => k,
-                None => {
-                    streams.push((id.to_string(), None, None, None));
-                    streams.len() - 1
-                }
-            };
             let slot = match (in_info, key) {
-                (false, "typeIdentifier") => &mut streams[k].1,
-                (true, "sizeX") => &mut streams[k].2,
-                (true, "sizeY") => &mut streams[k].3,
+                (false, "typeIdentifier") => 0,
+                (true, "sizeX") => 1,
+                (true, "sizeY") => 2,
                 _ => continue,
             };
-            *slot = Some(value.to_string());
+            let k = streams.iter().position(|s| s.0 == id).unwrap_or_else(|| {
+                streams.push((id, [None; 3]));
+                streams.len() - 1
+            });
+            streams[k].1[slot] = Some(value);
         }
     }
-    let (id, _, sx, sy) = streams
-        .iter()
-        .find(|s| s.1.as_deref() == Some("EVTS"))
-        .ok_or("no stream with typeIdentifier EVTS")?;
+    let (id, [_, sx, sy]) =
+        streams.iter().find(|s| s.1[0] == Some("EVTS")).ok_or("no stream with typeIdentifier EVTS")?;
     let id = id.parse::<i32>().map_err(|_| format!("stream ID `{id}` is not a number"))?;
-    let size = |v: &Option<String>, name: &str| -> Walk<u32> {
-        v.as_deref().map_or(Ok(0), |s| s.parse().map_err(|_| format!("{name} `{s}` is not a number")))
+    let size = |v: &Option<&str>, name: &str| -> Walk<u32> {
+        v.map_or(Ok(0), |s| s.parse().map_err(|_| format!("{name} `{s}` is not a number")))
     };
     Ok((id, size(sx, "sizeX")?, size(sy, "sizeY")?))
 }
@@ -268,11 +263,7 @@ impl Aedat4Decoder {
         let buf: Cow<'a, [u8]> = match self.compression {
             Aedat4Compression::None => Cow::Borrowed(payload),
             Aedat4Compression::Lz4 => {
-                let mut v = Vec::with_capacity(payload.len() * 2);
-                lz4_flex::frame::FrameDecoder::new(payload)
-                    .read_to_end(&mut v)
-                    .map_err(|e| self.packet_error(offset, format!("bad LZ4 frame: {e}")))?;
-                Cow::Owned(v)
+                Cow::Owned(lz4_decompress(payload).map_err(|m| self.packet_error(offset, m))?)
             }
             Aedat4Compression::Zstd => {
                 Cow::Owned(zstd_decompress(payload).map_err(|m| self.packet_error(offset, m))?)
@@ -330,12 +321,82 @@ fn event_structs(buf: &[u8]) -> Walk<(usize, usize)> {
     Ok((start + 4, count))
 }
 
-/// Decompress one zstd frame (its content size, when given, sizes the buffer up front).
+/// Decompress one LZ4 frame (LZ4 Frame Format 1.6.x), each block straight into the output: linked
+/// blocks (DV's default) see the previous 64 KiB of output as their dictionary. Checksums are not
+/// verified (DV writes none); corrupt block data still fails the bounds-checked block decoder.
+fn lz4_decompress(p: &[u8]) -> Walk<Vec<u8>> {
+    let bad = |m: &str| format!("bad LZ4 frame: {m}");
+    if !p.starts_with(&[0x04, 0x22, 0x4D, 0x18]) {
+        return Err(bad("no frame magic"));
+    }
+    let [flg, bd] = bytes::<2>(p, 4).map_err(|_| bad("truncated header"))?;
+    if flg >> 6 != 1 {
+        return Err(bad("unsupported version"));
+    }
+    let max_block = match (bd >> 4) & 7 {
+        4 => 64 << 10,
+        5 => 256 << 10,
+        6 => 1 << 20,
+        7 => 4 << 20,
+        _ => return Err(bad("invalid block maximum size")),
+    };
+    let (linked, block_checksum) = (flg & 0x20 == 0, flg & 0x10 != 0);
+    let mut pos = 6;
+    let content_size = if flg & 0x08 != 0 {
+        pos += 8;
+        Some(u64::from_le_bytes(bytes(p, 6).map_err(|_| bad("truncated header"))?) as usize)
+    } else {
+        None
+    };
+    pos += 1 + if flg & 0x01 != 0 { 4 } else { 0 }; // dictionary id, header checksum
+    let mut out = Vec::with_capacity(content_size.unwrap_or(4 * p.len()));
+    loop {
+        let word = u32::from_le_bytes(bytes(p, pos).map_err(|_| bad("truncated block"))?);
+        pos += 4;
+        if word == 0 {
+            break;
+        }
+        let len = (word & 0x7FFF_FFFF) as usize;
+        let block = p.get(pos..pos + len).ok_or_else(|| bad("truncated block"))?;
+        pos += len + if block_checksum { 4 } else { 0 };
+        if word & 0x8000_0000 != 0 {
+            out.extend_from_slice(block);
+            continue;
+        }
+        // A block decodes to at most `max_block` bytes (and no more than the content size says).
+        let start = out.len();
+        out.resize(start + content_size.map_or(max_block, |n| n.saturating_sub(start).min(max_block)), 0);
+        let (previous, rest) = out.split_at_mut(start);
+        let written = if linked {
+            let dict = &previous[start.saturating_sub(64 << 10)..];
+            lz4_flex::block::decompress_into_with_dict(block, rest, dict)
+        } else {
+            lz4_flex::block::decompress_into(block, rest)
+        };
+        out.truncate(start + written.map_err(|e| bad(&e.to_string()))?);
+    }
+    if content_size.is_some_and(|n| n != out.len()) {
+        return Err(bad("content size does not match the data"));
+    }
+    Ok(out)
+}
+
+/// Decompress one zstd frame. With the content size in the frame header (DV always writes it) the
+/// frame decodes straight into an exactly sized buffer; otherwise it streams.
 fn zstd_decompress(payload: &[u8]) -> Walk<Vec<u8>> {
-    let mut decoder =
-        ruzstd::decoding::StreamingDecoder::new(payload).map_err(|e| format!("bad ZSTD frame: {e}"))?;
-    let mut v = Vec::with_capacity(payload.len() * 2);
-    decoder.read_to_end(&mut v).map_err(|e| format!("bad ZSTD frame: {e}"))?;
+    let bad = |e: &dyn std::fmt::Display| format!("bad ZSTD frame: {e}");
+    let mut frame = ruzstd::decoding::FrameDecoder::new();
+    frame.init(payload).map_err(|e| bad(&e))?;
+    let size = frame.content_size() as usize;
+    let mut v = Vec::with_capacity(size);
+    if size > 0 {
+        frame.decode_all_to_vec(payload, &mut v).map_err(|e| bad(&e))?;
+    } else {
+        ruzstd::decoding::StreamingDecoder::new(payload)
+            .map_err(|e| bad(&e))?
+            .read_to_end(&mut v)
+            .map_err(|e| bad(&e))?;
+    }
     Ok(v)
 }
 
@@ -814,7 +875,7 @@ mod tests {
         file.extend(packet(3, &zstd_raw(&events_packet(&A))));
         file.extend(packet(0, b"not even zstd"));
         file.extend(packet(3, &zstd_raw(&events_packet(&many))));
-        let (ev, stats) = decode(&file, usize::MAX.min(file.len())).unwrap();
+        let (ev, stats) = decode(&file, file.len()).unwrap();
         assert_eq!(as_tuples(&ev), A.iter().chain(&many).copied().collect::<Vec<_>>());
         assert_eq!(stats.skipped_packets, 1);
 
@@ -875,11 +936,7 @@ mod tests {
             let position = h.data_table_position as usize;
             let table = match compression {
                 Aedat4Compression::None => file[position..].to_vec(),
-                Aedat4Compression::Lz4 => {
-                    let mut v = Vec::new();
-                    lz4_flex::frame::FrameDecoder::new(&file[position..]).read_to_end(&mut v).unwrap();
-                    v
-                }
+                Aedat4Compression::Lz4 => lz4_decompress(&file[position..]).unwrap(),
                 Aedat4Compression::Zstd => zstd_decompress(&file[position..]).unwrap(),
             };
             let b = &table[4..];
@@ -899,6 +956,18 @@ mod tests {
             }
             assert_eq!(offset, position);
         }
+    }
+
+    #[test]
+    fn result_is_independent_of_thread_count() {
+        let ev = feed::random_events(20_000, 5, 0, 3, 128, 128);
+        let file = encode_aedat4(ev.view(), Aedat4Compression::Lz4, 500);
+        let decode_with = |threads| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| decode(&file, file.len()).unwrap().0)
+        };
+        assert_eq!(decode_with(1), ev);
+        assert_eq!(decode_with(3), ev);
     }
 
     #[test]
