@@ -57,7 +57,7 @@ def test_round_trip_and_detection(tmp_path: Path, ev: EventArray, fmt: str) -> N
     n=st.integers(0, 400),
     seed=st.integers(0, 2**32 - 1),
     batch=st.integers(1, 500),
-    fmt=st.sampled_from(["parquet", "csv", "txt", "npy", "hdf5", "evt2", "evt3"]),
+    fmt=st.sampled_from(["parquet", "csv", "txt", "npy", "hdf5", "evt2", "evt3", "aedat4", "aedat4-zstd"]),
 )
 def test_property_random_events_stream_like_whole(tmp_path: Path, n, seed, batch, fmt) -> None:
     rng = np.random.default_rng(seed)

@@ -838,6 +838,11 @@ mod tests {
         assert!(e.contains("line 50001"), "{e}");
         let ev = read(&text[..text.len() - 11], &TextOptions::default()).unwrap();
         assert_eq!(ev.t, (0..50_000).collect::<Vec<i64>>());
+        for threads in [1, 3] {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let again = pool.install(|| read(&text[..text.len() - 11], &TextOptions::default()).unwrap());
+            assert_eq!(again, ev, "{threads} threads");
+        }
     }
 
     #[test]
