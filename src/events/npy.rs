@@ -310,51 +310,116 @@ pub fn parse_npy_header(
 
 type ColResult = std::result::Result<(), (usize, String)>;
 
-/// Convert column `f` of every row in `data` into `out` through `ci` (integer columns) or `cf` (float
-/// columns). One tight loop per element type, so the per-value work inlines and vectorises.
+/// Conversion of one column's raw values to event values. The hot loop only asks for an `Option`;
+/// the message is built for the first failing row alone.
+trait Conv<T> {
+    fn int(&self, v: i64) -> Option<T>;
+    fn float(&self, v: f64) -> Option<T>;
+    fn why(&self, v: String) -> String;
+}
+
+/// Time to µs in the layout's unit.
+struct TimeConv(TimeUnit);
+
+impl Conv<i64> for TimeConv {
+    #[inline(always)]
+    fn int(&self, v: i64) -> Option<i64> {
+        match self.0 {
+            TimeUnit::S => v.checked_mul(1_000_000),
+            TimeUnit::Ms => v.checked_mul(1_000),
+            TimeUnit::Us => Some(v),
+            TimeUnit::Ns => Some((v as f64 * 1e-3).round() as i64),
+        }
+    }
+    #[inline(always)]
+    fn float(&self, v: f64) -> Option<i64> {
+        let scale = match self.0 {
+            TimeUnit::S => 1e6,
+            TimeUnit::Ms => 1e3,
+            TimeUnit::Us => 1.0,
+            TimeUnit::Ns => 1e-3,
+        };
+        v.is_finite().then(|| (v * scale).round() as i64)
+    }
+    fn why(&self, v: String) -> String {
+        format!("time {v} is not finite or overflows")
+    }
+}
+
+/// A pixel coordinate: an integer in 0..=65535 (floats must be integral).
+struct CoordConv(&'static str);
+
+impl Conv<u16> for CoordConv {
+    #[inline(always)]
+    fn int(&self, v: i64) -> Option<u16> {
+        u16::try_from(v).ok()
+    }
+    #[inline(always)]
+    fn float(&self, v: f64) -> Option<u16> {
+        (v.fract() == 0.0 && (0.0..=65535.0).contains(&v)).then_some(v as u16)
+    }
+    fn why(&self, v: String) -> String {
+        format!("{} = {v} is not a pixel coordinate in 0..=65535", self.0)
+    }
+}
+
+/// Polarity: 1 → +1; 0 or −1 → −1.
+struct PolConv;
+
+impl Conv<i8> for PolConv {
+    #[inline(always)]
+    fn int(&self, v: i64) -> Option<i8> {
+        match v {
+            1 => Some(1),
+            0 | -1 => Some(-1),
+            _ => None,
+        }
+    }
+    #[inline(always)]
+    fn float(&self, v: f64) -> Option<i8> {
+        if v == 1.0 {
+            Some(1)
+        } else if v == 0.0 || v == -1.0 {
+            Some(-1)
+        } else {
+            None
+        }
+    }
+    fn why(&self, v: String) -> String {
+        format!("polarity {v} is not one of 0/1, -1/+1")
+    }
+}
+
+/// Convert column `f` of every row in `data` into `out`. One tight loop per element type, so the
+/// per-value work inlines.
 #[inline]
-fn column<T, CI, CF>(data: &[u8], rs: usize, f: Field, out: &mut [T], ci: CI, cf: CF) -> ColResult
-where
-    CI: Fn(i64) -> std::result::Result<T, String>,
-    CF: Fn(f64) -> std::result::Result<T, String>,
-{
+fn column<T>(data: &[u8], rs: usize, f: Field, out: &mut [T], conv: &impl Conv<T>) -> ColResult {
     macro_rules! go {
-        ($t:ty, $n:expr, $to:expr, $conv:expr) => {{
+        ($t:ty, $n:expr, $to:expr, $method:ident) => {{
             for (i, (row, o)) in data.chunks_exact(rs).zip(out.iter_mut()).enumerate() {
                 let a: [u8; $n] = row[f.offset..f.offset + $n].try_into().unwrap();
-                let v = if f.big_endian { <$t>::from_be_bytes(a) } else { <$t>::from_le_bytes(a) };
-                *o = $conv($to(v)).map_err(|m| (i, m))?;
+                let v = $to(if f.big_endian { <$t>::from_be_bytes(a) } else { <$t>::from_le_bytes(a) });
+                match conv.$method(v) {
+                    Some(c) => *o = c,
+                    None => return Err((i, conv.why(v.to_string()))),
+                }
             }
         }};
     }
     match f.scalar {
-        Scalar::Bool => go!(u8, 1, |v: u8| i64::from(v != 0), ci),
-        Scalar::I8 => go!(i8, 1, i64::from, ci),
-        Scalar::U8 => go!(u8, 1, i64::from, ci),
-        Scalar::I16 => go!(i16, 2, i64::from, ci),
-        Scalar::U16 => go!(u16, 2, i64::from, ci),
-        Scalar::I32 => go!(i32, 4, i64::from, ci),
-        Scalar::U32 => go!(u32, 4, i64::from, ci),
-        Scalar::I64 => go!(i64, 8, |v: i64| v, ci),
-        Scalar::U64 => go!(u64, 8, |v: u64| i64::try_from(v).unwrap_or(i64::MAX), ci),
-        Scalar::F32 => go!(f32, 4, f64::from, cf),
-        Scalar::F64 => go!(f64, 8, |v: f64| v, cf),
+        Scalar::Bool => go!(u8, 1, |v: u8| i64::from(v != 0), int),
+        Scalar::I8 => go!(i8, 1, i64::from, int),
+        Scalar::U8 => go!(u8, 1, i64::from, int),
+        Scalar::I16 => go!(i16, 2, i64::from, int),
+        Scalar::U16 => go!(u16, 2, i64::from, int),
+        Scalar::I32 => go!(i32, 4, i64::from, int),
+        Scalar::U32 => go!(u32, 4, i64::from, int),
+        Scalar::I64 => go!(i64, 8, |v: i64| v, int),
+        Scalar::U64 => go!(u64, 8, |v: u64| i64::try_from(v).unwrap_or(i64::MAX), int),
+        Scalar::F32 => go!(f32, 4, f64::from, float),
+        Scalar::F64 => go!(f64, 8, |v: f64| v, float),
     }
     Ok(())
-}
-
-fn coord_i(what: &'static str) -> impl Fn(i64) -> std::result::Result<u16, String> {
-    move |v| u16::try_from(v).map_err(|_| format!("{what} = {v} outside 0..=65535"))
-}
-
-fn coord_f(what: &'static str) -> impl Fn(f64) -> std::result::Result<u16, String> {
-    move |v| {
-        if v.fract() == 0.0 && (0.0..=65535.0).contains(&v) {
-            Ok(v as u16)
-        } else {
-            Err(format!("{what} = {v} is not a pixel coordinate"))
-        }
-    }
 }
 
 /// Convert whole rows in `data` (rows `first_row..`) to events appended to `out`, in parallel chunks
@@ -363,42 +428,7 @@ fn decode_rows(layout: &NpyLayout, data: &[u8], first_row: u64, path: &str, out:
     const CH: usize = 1 << 15;
     let rs = layout.row_size;
     let n = data.len() / rs;
-    let unit = layout.time_unit;
-    let scale_f = 10f64.powi(match unit {
-        TimeUnit::S => 6,
-        TimeUnit::Ms => 3,
-        TimeUnit::Us => 0,
-        TimeUnit::Ns => -3,
-    });
-    let t_i = move |v: i64| -> std::result::Result<i64, String> {
-        match unit {
-            TimeUnit::S => v.checked_mul(1_000_000).ok_or_else(|| format!("time {v} s overflows")),
-            TimeUnit::Ms => v.checked_mul(1_000).ok_or_else(|| format!("time {v} ms overflows")),
-            TimeUnit::Us => Ok(v),
-            TimeUnit::Ns => Ok((v as f64 * 1e-3).round() as i64),
-        }
-    };
-    let t_f = move |v: f64| -> std::result::Result<i64, String> {
-        if v.is_finite() {
-            Ok((v * scale_f).round() as i64)
-        } else {
-            Err(format!("time {v} is not finite"))
-        }
-    };
-    let p_i = |v: i64| match v {
-        1 => Ok(1i8),
-        0 | -1 => Ok(-1),
-        _ => Err(format!("polarity {v} is not one of 0/1, -1/+1")),
-    };
-    let p_f = |v: f64| {
-        if v == 1.0 {
-            Ok(1i8)
-        } else if v == 0.0 || v == -1.0 {
-            Ok(-1)
-        } else {
-            Err(format!("polarity {v} is not one of 0/1, -1/+1"))
-        }
-    };
+    let time = TimeConv(layout.time_unit);
     let [ft, fx, fy, fp] = layout.fields;
     let start = out.len();
     out.t.resize(start + n, 0);
@@ -414,10 +444,10 @@ fn decode_rows(layout: &NpyLayout, data: &[u8], first_row: u64, path: &str, out:
         .enumerate()
         .filter_map(|(c, ((((t, x), y), p), d))| {
             [
-                column(d, rs, ft, t, t_i, t_f),
-                column(d, rs, fx, x, coord_i("x"), coord_f("x")),
-                column(d, rs, fy, y, coord_i("y"), coord_f("y")),
-                column(d, rs, fp, p, p_i, p_f),
+                column(d, rs, ft, t, &time),
+                column(d, rs, fx, x, &CoordConv("x")),
+                column(d, rs, fy, y, &CoordConv("y")),
+                column(d, rs, fp, p, &PolConv),
             ]
             .into_iter()
             .filter_map(|r| r.err())
