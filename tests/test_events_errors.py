@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from evgs.cli import main
-from evgs.events.io import read_events, write_events
+from evgs.events.io import EventWriter, read_events, write_events
 from evgs.events.synthetic import synthetic_events
 
 
@@ -120,3 +120,18 @@ def test_corrupt_parquet_is_a_clean_error(tmp_path: Path, capsys) -> None:
     bad.write_bytes(b"PAR1" + bytes(100))
     code, _, err = run_cli(capsys, "events", "info", str(bad))
     assert code == 2 and str(bad) in err
+
+
+def test_writers_leave_nothing_behind_on_error(tmp_path: Path) -> None:
+    ev = synthetic_events(100, seed=3)
+    for fmt, name in (
+        ("parquet", "o.parquet"),
+        ("npy", "o.npy"),
+        ("hdf5", "o.h5"),
+        ("csv", "o.csv"),
+        ("evt3", "o.raw"),
+    ):
+        with pytest.raises(RuntimeError, match="boom"), EventWriter(tmp_path / name, fmt) as w:
+            w.write(ev)
+            raise RuntimeError("boom")
+    assert list(tmp_path.iterdir()) == []

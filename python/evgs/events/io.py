@@ -408,9 +408,11 @@ class EventWriter:
         """Finish the file and move it into place."""
         try:
             self._finish()
-            self._atomic.__exit__(None, None, None)
-        finally:
-            self._cleanup()
+        except BaseException:
+            self.abort()
+            raise
+        self._cleanup()
+        self._atomic.__exit__(None, None, None)
 
     def abort(self) -> None:
         """Discard everything written so far."""
