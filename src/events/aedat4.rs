@@ -273,7 +273,8 @@ impl Aedat4Decoder {
         Ok(Unpacked { offset, buf, start, count })
     }
 
-    /// Copy a packet's events into the column slices, checking coordinates.
+    /// Copy a packet's events into the column slices, checking coordinates. The loop is branch-free
+    /// (a bad coordinate only sets a flag); the offending event is looked up afterwards.
     fn fill(
         &self,
         p: &Unpacked<'_>,
@@ -282,24 +283,36 @@ impl Aedat4Decoder {
         y: &mut [u16],
         pol: &mut [i8],
     ) -> Result<()> {
-        let xlim = if self.width == 0 { 1 << 15 } else { self.width as i32 };
-        let ylim = if self.height == 0 { 1 << 15 } else { self.height as i32 };
-        let structs = p.buf[p.start..p.start + EVENT_SIZE * p.count].chunks_exact(EVENT_SIZE);
-        for (j, e) in structs.enumerate() {
-            let ex = i16::from_le_bytes([e[8], e[9]]) as i32;
-            let ey = i16::from_le_bytes([e[10], e[11]]) as i32;
-            if !(0..xlim).contains(&ex) || !(0..ylim).contains(&ey) {
-                return Err(self.packet_error(
-                    p.offset,
-                    format!("event {j}: ({ex}, {ey}) outside the {}x{} sensor", self.width, self.height),
-                ));
-            }
-            t[j] = i64::from_le_bytes(e[0..8].try_into().unwrap());
-            x[j] = ex as u16;
-            y[j] = ey as u16;
-            pol[j] = if e[12] != 0 { 1 } else { -1 };
+        // Coordinates are i16; seen as u16 a negative one is ≥ 2^15, so one unsigned compare suffices.
+        let xlim = if self.width == 0 { 1 << 15 } else { self.width };
+        let ylim = if self.height == 0 { 1 << 15 } else { self.height };
+        let structs = &p.buf[p.start..p.start + EVENT_SIZE * p.count];
+        let mut bad = false;
+        for ((e, t), ((x, y), pol)) in
+            structs.chunks_exact(EVENT_SIZE).zip(t).zip(x.iter_mut().zip(y.iter_mut()).zip(pol.iter_mut()))
+        {
+            let ex = u16::from_le_bytes([e[8], e[9]]);
+            let ey = u16::from_le_bytes([e[10], e[11]]);
+            bad |= (u32::from(ex) >= xlim) | (u32::from(ey) >= ylim);
+            *t = i64::from_le_bytes(e[0..8].try_into().unwrap());
+            *x = ex;
+            *y = ey;
+            *pol = if e[12] != 0 { 1 } else { -1 };
         }
-        Ok(())
+        if !bad {
+            return Ok(());
+        }
+        let (j, (ex, ey)) = x
+            .iter()
+            .zip(y.iter())
+            .map(|(&ex, &ey)| (ex as i16, ey as i16))
+            .enumerate()
+            .find(|&(_, (ex, ey))| ex < 0 || ey < 0 || ex as u32 >= xlim || ey as u32 >= ylim)
+            .expect("a flagged coordinate exists");
+        Err(self.packet_error(
+            p.offset,
+            format!("event {j}: ({ex}, {ey}) outside the {}x{} sensor", self.width, self.height),
+        ))
     }
 }
 
@@ -904,6 +917,10 @@ mod tests {
         file.extend(packet(3, &events_packet(&[(5, 64, 0, true)])));
         let e = decode(&file, 1000).unwrap_err().to_string();
         assert!(e.contains(&format!("byte offset {at}")) && e.contains("(64, 0)"), "{e}");
+        let mut file = io_header(None, None, XML);
+        file.extend(packet(3, &events_packet(&[(5, 1, 1, true), (6, 3, -2, true)])));
+        let e = decode(&file, 1000).unwrap_err().to_string();
+        assert!(e.contains("event 1: (3, -2)"), "{e}");
 
         let mut file = io_header(Some(0), Some(0), XML);
         let at = file.len();

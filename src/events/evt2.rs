@@ -4,7 +4,7 @@
 //! counter wraps every 2^34 µs, which is undone by comparing each new unwrapped base with the
 //! previous unwrapped base (never the raw value with the unwrapped one).
 
-use super::raw_header::{write_raw_header, DecodeStats, RawEncoding};
+use super::raw_header::{write_raw_header, DecodeStats, RawEncoding, MAX_COORD};
 use super::{Decoder, Events, EventsView};
 use crate::error::{Error, Result};
 
@@ -84,8 +84,8 @@ impl Decoder for Evt2Decoder {
         if out.width == 0 && out.height == 0 {
             (out.width, out.height) = (self.width, self.height);
         }
-        let xlim = if self.width == 0 { u32::MAX } else { self.width };
-        let ylim = if self.height == 0 { u32::MAX } else { self.height };
+        let xlim = if self.width == 0 { MAX_COORD } else { self.width };
+        let ylim = if self.height == 0 { MAX_COORD } else { self.height };
         let mut t0 = self.base - self.shift;
         for (i, word) in data[..n].chunks_exact(4).enumerate() {
             let w = u32::from_le_bytes(word.try_into().unwrap());

@@ -7,7 +7,7 @@
 //! detects the 24-bit loop.
 
 use super::evt2::reserve;
-use super::raw_header::{write_raw_header, DecodeStats, RawEncoding};
+use super::raw_header::{write_raw_header, DecodeStats, RawEncoding, MAX_COORD};
 use super::{Decoder, Events, EventsView};
 use crate::error::{Error, Result};
 
@@ -88,8 +88,8 @@ impl Evt3Decoder {
         data: &[u8],
         out: &mut Events,
     ) -> std::result::Result<(), (usize, u32, u32)> {
-        let xlim = if self.width == 0 { u32::MAX } else { self.width };
-        let ylim = if self.height == 0 { u32::MAX } else { self.height };
+        let xlim = if self.width == 0 { MAX_COORD } else { self.width };
+        let ylim = if self.height == 0 { MAX_COORD } else { self.height };
         let stats = &mut self.stats;
         for (i, word) in data.chunks_exact(2).enumerate() {
             let w = u16::from_le_bytes([word[0], word[1]]);
@@ -132,7 +132,7 @@ impl Evt3Decoder {
                             mask &= mask - 1;
                         }
                     }
-                    st.base_x += width;
+                    st.base_x = st.base_x.saturating_add(width);
                 }
                 TIME_LOW => st.t = st.base + i64::from(w & 0xFFF),
                 ADDR_Y => {
@@ -357,6 +357,20 @@ mod tests {
         let mut dec = Evt3Decoder::new("g.raw", 640, 480, false);
         let e = feed::whole(&mut dec, &data, 1000).unwrap_err().to_string();
         assert!(e.contains("g.raw") && e.contains("byte offset 1008") && e.contains("(653, 1)"), "{e}");
+    }
+
+    #[test]
+    fn unknown_geometry_still_bounds_vectors_to_11_bits() {
+        let data = bytes(&[
+            w(TIME_HIGH, 0),
+            w(ADDR_Y, 1),
+            w(VECT_BASE_X, 2040),
+            w(VECT_12, 1 << 7),
+            w(VECT_12, 1 << 2),
+        ]);
+        let mut dec = Evt3Decoder::new("g.raw", 0, 0, false);
+        let e = feed::whole(&mut dec, &data, 0).unwrap_err().to_string();
+        assert!(e.contains("byte offset 8") && e.contains("(2054, 1)"), "{e}");
     }
 
     /// Random row bursts (what vector groups are for), with time gaps that loop the 24-bit counter.

@@ -39,6 +39,9 @@ pub struct DecodeStats {
     pub skipped_packets: u64,
 }
 
+/// Coordinate bound when the header names no geometry: EVT 2.0 / 3.0 addresses are 11-bit fields.
+pub(crate) const MAX_COORD: u32 = 1 << 11;
+
 /// The (encoding, width, height) of the OpenEB `system_ID` table, for headers without geometry.
 fn system_id_geometry(id: &str) -> Option<(RawEncoding, u32, u32)> {
     match id.trim() {
