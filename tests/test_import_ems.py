@@ -64,7 +64,6 @@ def test_ems_import(tmp_path, unit, polarity):
     # The events of frame i are exactly those after frame i−1 up to frame i.
     per_frame = np.diff(np.searchsorted(got.t, frames, side="right"), prepend=0)
     np.testing.assert_array_equal(per_frame, counts)
-    assert seq.meta["events_per_frame"] == counts.tolist()
     assert_projects_as_truth(seq, T_wc, ends)
     assert seq.image(3) is not None and abs(float(seq.image(3).mean()) - 60 / 255) < 0.01
 
@@ -112,3 +111,20 @@ def test_ems_errors(tmp_path, capsys):
     assert run_import("ems", tmp_path / "nowhere", "--intrinsics", INTRINSICS) == 2
     assert "event_stream: folder not found" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_ems_sequence_selection(tmp_path):
+    """Several sequences in one folder, files named <seq>_<frame>: --sequence picks one."""
+    split = tmp_path / "training"
+    ev, counts, ends, T_wc = write_ems(split, np.random.default_rng(23), unit="s", polarity="01")
+    for sub, ext in (("Event/event_stream", "csv"), ("Event/pose", "txt"), ("RGB/img", "jpg")):
+        for f in (split / sub).glob(f"*.{ext}"):
+            f.rename(f.with_name(f"69_{f.name}"))
+            (split / sub / f"70_{f.name}").write_bytes(b"other sequence, must not be read")
+    out = tmp_path / "o"
+    assert run_import("ems", split, "--sequence", "69", "--intrinsics", INTRINSICS, "--out", out) == 0
+    seq = Sequence.load(out)
+    assert seq.name == "69"
+    np.testing.assert_array_equal(seq.events().t, ev["t"])
+    np.testing.assert_array_equal(seq.frames_us(), ends)
+    assert_projects_as_truth(seq, T_wc, ends)

@@ -71,6 +71,7 @@ def load(
     no_images: bool = False,
 ) -> Imported:
     event_dir = path / "Event" if (path / "Event").is_dir() else path
+    split = event_dir.parent if event_dir.name == "Event" else event_dir  # holds Event/ and RGB/
     camera = Camera(size[0], size[1], *intrinsics)
     csvs = _indexed_files(event_dir / "event_stream", "csv", sequence)
     poses = _indexed_files(event_dir / "pose", "txt", sequence)
@@ -81,6 +82,9 @@ def load(
         )
     idx = sorted(csvs)
     notes: list[str] = []
+    gaps = sorted(set(range(idx[0], idx[-1] + 1)) - set(idx))
+    if gaps:
+        notes.append(f"{event_dir / 'event_stream'}: no CSV for frame indices {gaps[:10]}; frames re-indexed")
     unit = time_unit or detect_time_unit([csvs[i] for i in idx])
     if time_unit is None:
         notes.append(f"time unit of the event CSVs detected as {unit}")
@@ -88,7 +92,6 @@ def load(
     parts = []
     for i in progress.track(idx, description="reading event CSVs"):
         parts.append(read_events(csvs[i], "csv", time_unit=unit, width=camera.width, height=camera.height))
-    counts = np.array([len(p) for p in parts])
     frames = _frame_times(parts, [csvs[i] for i in idx], notes)
     events = EventArray(*(np.concatenate([getattr(p, c) for p in parts]) for c in "txyp"))
     events = finish_events(events, camera, str(event_dir / "event_stream"), notes)
@@ -99,7 +102,7 @@ def load(
     T_wc = to_c2w(T, pose_direction)
 
     images = None
-    img_dir = (event_dir.parent if event_dir.name == "Event" else path) / "RGB" / "img"
+    img_dir = split / "RGB" / "img"
     if not no_images and img_dir.is_dir():
         imgs = _indexed_files(img_dir, "jpg", sequence)
         lacking = [i for i in idx if i not in imgs]
@@ -108,14 +111,12 @@ def load(
                 f"{img_dir}: no image for frame {lacking[0]} (pass --no-images to skip them)"
             )
         images = [imgs[i] for i in idx]
-    name = sequence if sequence is not None else path.resolve().name
+    name = sequence if sequence is not None else split.resolve().name
     meta = {
         "source": "ems",
         "raw_path": str(path.resolve()),
         "pose_direction": pose_direction,
         "time_unit": unit,
-        "frame_index": [int(i) for i in idx],
-        "events_per_frame": [int(c) for c in counts],
     }
     return Imported(
         name, camera, events, frames, poses_gt=(frames, T_wc), images=images, meta=meta, notes=notes
