@@ -110,3 +110,25 @@ def test_elope_malformed(tmp_path, capsys):
     assert run_import("elope", tmp_path / "bad2.npz", "--out", tmp_path / "o") == 2
     assert "no 'timestamps' array" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_elope_camera_rotation(tmp_path, capsys):
+    """A camera mounted rotated in the body: the body attitude plus --camera-rotation give the camera pose."""
+    T_wc = descent_poses(5)
+    R_bc = Rotation.from_euler("z", 90, degrees=True).as_matrix()  # camera x = body y
+    write_elope(tmp_path / "a.npz", np.random.default_rng(35), T_wc)
+    arrays = dict(np.load(tmp_path / "a.npz"))
+    R_wb = T_wc[:, :3, :3] @ R_bc.T
+    arrays["traj"][:, 6:9] = Rotation.from_matrix(R_wb).as_euler("xyz")
+    np.savez(tmp_path / "a.npz", **arrays)
+    rot = ",".join(f"{v:.15g}" for v in R_bc.ravel())
+    assert run_import("elope", tmp_path / "a.npz", "--out", tmp_path / "o", "--camera-rotation", rot) == 0
+    seq = Sequence.load(tmp_path / "o")
+    assert_projects_as_truth(seq, T_wc, seq.frames_us())
+    assert (
+        run_import(
+            "elope", tmp_path / "a.npz", "--out", tmp_path / "p", "--camera-rotation", "1,0,0,0,1,0,0,0,2"
+        )
+        == 2
+    )
+    assert "--camera-rotation: not a rotation matrix" in capsys.readouterr().err

@@ -81,9 +81,10 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return np.stack([o, -z, y, z, o, -x, -y, x, o], axis=-1).reshape(v.shape[:-1] + (3, 3))
 
 
-def check_rotations(rot: np.ndarray, source: str, first_line: int = 1) -> np.ndarray:
-    """Project near-orthonormal (…, 3, 3) matrices (rounded text) onto SO(3); raise naming the line of
-    the first that is not a rotation (non-finite, det ≤ 0, or further than ``ORTHONORMAL_TOL``)."""
+def check_rotations(rot: np.ndarray, source: str, first_line: int | None = None) -> np.ndarray:
+    """Project near-orthonormal (…, 3, 3) matrices (rounded text) onto SO(3); raise naming ``source``
+    (and the line, counted from ``first_line``) of the first that is not a rotation (non-finite,
+    det ≤ 0, or further than ``ORTHONORMAL_TOL``)."""
     m = np.asarray(rot, np.float64).reshape(-1, 3, 3)
     u, _, vt = np.linalg.svd(np.nan_to_num(m))
     proj = u @ vt
@@ -92,7 +93,7 @@ def check_rotations(rot: np.ndarray, source: str, first_line: int = 1) -> np.nda
     if np.any(bad):
         i = int(np.argmax(bad))
         raise ValueError(
-            f"{source}: line {first_line + i}: not a rotation matrix "
+            f"{source}: {'' if first_line is None else f'line {first_line + i}: '}not a rotation matrix "
             f"(|R·Rᵀ − I| = {err[i]:.2g}, det = {np.linalg.det(m[i]):.3g})"
         )
     return proj.reshape(np.shape(rot))
