@@ -29,6 +29,10 @@ ADAPTERS = {
 }
 
 
+# Images are imported as the data sets store them, so image metrics compare with published numbers.
+IMAGE_NOTE = "source pixel values scaled to [0, 1], grey; not linearised"
+
+
 @dataclass
 class Imported:
     """A raw sequence converted to evgs conventions, before it is written.
@@ -183,9 +187,10 @@ def write_imported(seq: Imported, out: Path, progress: Progress) -> Sequence:
         if seq.images is not None:
             task = progress.add_task("writing images", total=len(seq.images))
             images = _track_images(seq.images, seq.camera, progress, task)
+        meta = seq.meta if images is None else {**seq.meta, "images": IMAGE_NOTE}
         write_sequence(
             root, seq.name, seq.camera, seq.events, seq.frames_us, poses_gt=seq.poses_gt,
-            images=images, range_samples=seq.range_samples, meta=seq.meta,
+            images=images, range_samples=seq.range_samples, meta=meta,
         )  # fmt: skip
         for name, df in seq.tables.items():
             df.write_csv(root / name)

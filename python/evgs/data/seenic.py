@@ -7,11 +7,12 @@ axis-angle vector and a translation, header row or not).
 Frames are the pose timestamps (the ground truth's own clock).
 
 Distortion: the DVXplorer's OpenCV distortion is stored in ``sequence.toml`` and the events are kept
-at their recorded (distorted) pixels. Undistortion happens in the event-frame path, which maps each
-event through the inverse distortion as it accumulates a frame. Doing it here would round the
-undistorted sub-pixel positions back to the integer pixel grid (the canonical x/y are uint16), which
-biases them, and would push border events outside the sensor. Keeping the recorded pixels makes the
-import lossless and reversible.
+at their recorded (distorted) pixels. Undistortion happens in the event-frame path (the undistortion
+map built from ``sequence.toml``'s camera, applied as events are accumulated into frames), where each
+event keeps its sub-pixel undistorted position. Doing it here would round those positions back to
+the integer pixel grid (the canonical x/y are uint16), which biases them, and would have to drop the
+border events that undistort outside the sensor. Keeping the recorded pixels makes the import lossless
+and reversible.
 
 Pose direction is *unconfirmed*; the default ``c2w`` treats the poses as the camera in the target
 (world) frame, which is how the thesis code that produced the paper's numbers used them.
