@@ -1,1 +1,913 @@
-//! iniVation AEDAT 4.0 decoder (LZ4 and ZSTD packets).
+//! iniVation AEDAT 4.0 decoder and encoder (LZ4 and ZSTD packets; EVENT_FORMATS.md §4).
+//!
+//! A file is a magic line, a size-prefixed IOHeader FlatBuffer (compression, where the packet area
+//! ends, an XML description of the streams), then packets `(i32 stream id, i32 size, payload)` of
+//! interleaved streams up to the FileDataTable. Event packets decompress to an `EventPacket`
+//! FlatBuffer holding a vector of 16-byte structs. Buffers are only byte-aligned, so every field is
+//! read with `from_le_bytes` through bounds-checked slices; packets decompress in parallel and are
+//! appended in file order.
+
+use std::borrow::Cow;
+use std::io::Read;
+
+use rayon::prelude::*;
+
+use super::raw_header::DecodeStats;
+use super::{Decoder, Events, EventsView};
+use crate::error::{Error, Result};
+
+const MAGIC: &[u8; 14] = b"#!AER-DAT4.0\r\n";
+/// Bytes of one `Event` struct: i64 t, i16 x, i16 y, bool on, 3 padding.
+const EVENT_SIZE: usize = 16;
+
+/// Packet payload compression named by the IOHeader.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Aedat4Compression {
+    None,
+    Lz4,
+    Zstd,
+}
+
+/// What the IOHeader says: compression, where the packets end, and the event stream.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Aedat4Header {
+    pub compression: Aedat4Compression,
+    /// Absolute offset of the FileDataTable (where packets end), or −1 (read to end of file).
+    pub data_table_position: i64,
+    /// Sensor size from the event stream's `sizeX`/`sizeY`; 0 when the XML has none.
+    pub width: u32,
+    pub height: u32,
+    pub event_stream_id: i32,
+    /// Absolute offset of the first packet.
+    pub data_offset: usize,
+}
+
+// ---- FlatBuffer walk (bounds-checked; errors are messages the caller places in the file) ----
+
+type Walk<T> = std::result::Result<T, String>;
+
+fn bytes<const N: usize>(b: &[u8], at: usize) -> Walk<[u8; N]> {
+    at.checked_add(N)
+        .and_then(|end| b.get(at..end))
+        .map(|s| s.try_into().unwrap())
+        .ok_or_else(|| format!("FlatBuffer offset {at} is outside the {}-byte buffer", b.len()))
+}
+
+fn u16_at(b: &[u8], at: usize) -> Walk<usize> {
+    Ok(u16::from_le_bytes(bytes(b, at)?) as usize)
+}
+
+fn u32_at(b: &[u8], at: usize) -> Walk<usize> {
+    Ok(u32::from_le_bytes(bytes(b, at)?) as usize)
+}
+
+/// Follow the uoffset stored at `at` (vector, string or table reference).
+fn follow(b: &[u8], at: usize) -> Walk<usize> {
+    Ok(at + u32_at(b, at)?)
+}
+
+/// The root table of a buffer (after its size prefix), checking the 4-byte file identifier.
+fn root(b: &[u8], identifier: &[u8; 4]) -> Walk<usize> {
+    let found: [u8; 4] = bytes(b, 4)?;
+    if &found != identifier {
+        return Err(format!(
+            "FlatBuffer identifier is {:?}, expected {:?}",
+            String::from_utf8_lossy(&found),
+            String::from_utf8_lossy(identifier)
+        ));
+    }
+    follow(b, 0)
+}
+
+/// Position of field `k` of the table at `table`, or `None` when the vtable marks it absent.
+fn field(b: &[u8], table: usize, k: usize) -> Walk<Option<usize>> {
+    // The soffset is signed and subtracted: the vtable may sit before or after its table.
+    let soffset = i32::from_le_bytes(bytes(b, table)?);
+    let vt = usize::try_from(table as i64 - i64::from(soffset))
+        .map_err(|_| format!("vtable before buffer start (soffset {soffset})"))?;
+    let slot = 4 + 2 * k;
+    if slot >= u16_at(b, vt)? {
+        return Ok(None);
+    }
+    let off = u16_at(b, vt + slot)?;
+    Ok((off != 0).then_some(table + off))
+}
+
+/// A vector field as (position of the first element, count); an absent vector is empty.
+fn vector(b: &[u8], table: usize, k: usize) -> Walk<(usize, usize)> {
+    match field(b, table, k)? {
+        None => Ok((0, 0)),
+        Some(f) => {
+            let v = follow(b, f)?;
+            Ok((v + 4, u32_at(b, v)?))
+        }
+    }
+}
+
+// ---- IOHeader ----
+
+/// Parse the magic and IOHeader at the start of `data` (the file's first bytes).
+pub fn parse_aedat4_header(data: &[u8], path: &str) -> Result<Aedat4Header> {
+    if !data.starts_with(MAGIC) {
+        return Err(Error::format(path, "byte offset 0", "not an AEDAT 4.0 file (no `#!AER-DAT4.0` magic)"));
+    }
+    let err = |m: String| Error::format(path, "IOHeader at byte offset 18", m);
+    let size = u32_at(data, 14)
+        .map_err(|_| Error::format(path, "byte offset 14", "file ends inside the IOHeader size"))?;
+    let Some(b) = data.get(18..18 + size) else {
+        return Err(err(format!("file ends inside the {size}-byte IOHeader")));
+    };
+    let t = root(b, b"IOHE").map_err(err)?;
+    let compression = match field(b, t, 0).map_err(err)? {
+        None => 0,
+        Some(f) => i32::from_le_bytes(bytes(b, f).map_err(err)?),
+    };
+    let compression = match compression {
+        0 => Aedat4Compression::None,
+        1 | 2 => Aedat4Compression::Lz4,
+        3 | 4 => Aedat4Compression::Zstd,
+        c => return Err(err(format!("unknown compression {c} (0 to 4 are defined)"))),
+    };
+    let data_table_position = match field(b, t, 1).map_err(err)? {
+        None => -1,
+        Some(f) => i64::from_le_bytes(bytes(b, f).map_err(err)?),
+    };
+    let Some(info) = field(b, t, 2).map_err(err)? else {
+        return Err(err("no infoNode (stream description)".into()));
+    };
+    let s = follow(b, info).map_err(err)?;
+    let len = u32_at(b, s).map_err(err)?;
+    let xml =
+        b.get(s + 4..s + 4 + len).ok_or_else(|| err("infoNode string runs past the IOHeader".into()))?;
+    let xml = std::str::from_utf8(xml).map_err(|_| err("infoNode is not UTF-8".into()))?;
+    let (event_stream_id, width, height) = event_stream(xml).map_err(|m| err(format!("infoNode: {m}")))?;
+    Ok(Aedat4Header {
+        compression,
+        data_table_position,
+        width,
+        height,
+        event_stream_id,
+        data_offset: 18 + size,
+    })
+}
+
+/// The value of `name="…"` inside a tag.
+fn xml_attr<'a>(tag: &'a str, name: &str) -> Option<&'a str> {
+    let start = tag.find(&format!(" {name}=\""))? + name.len() + 3;
+    Some(&tag[start..start + tag[start..].find('"')?])
+}
+
+/// (ID, sizeX, sizeY) of the first stream whose `typeIdentifier` is `EVTS`.
+///
+/// The XML is `<dv><node name="outInfo"><node name="ID">` with `<attr key=…>` entries and a child
+/// `<node name="info">` holding `sizeX`/`sizeY`; a small tag scanner is enough for it.
+fn event_stream(xml: &str) -> Walk<(i32, u32, u32)> {
+    // Per stream id, in document order: (typeIdentifier, sizeX, sizeY).
+    let mut streams: Vec<(String, Option<String>, Option<String>, Option<String>)> = Vec::new();
+    let mut path: Vec<&str> = Vec::new();
+    let mut pos = 0;
+    while let Some(lt) = xml[pos..].find('<') {
+        let start = pos + lt;
+        if xml[start..].starts_with("<!--") {
+            pos = start + xml[start..].find("-->").ok_or("unterminated comment")? + 3;
+            continue;
+        }
+        let end = start + xml[start..].find('>').ok_or("unterminated tag")?;
+        let tag = &xml[start + 1..end];
+        pos = end + 1;
+        if tag.starts_with("/node") {
+            path.pop();
+        } else if tag.starts_with("node") && !tag.ends_with('/') {
+            path.push(xml_attr(tag, "name").unwrap_or(""));
+        } else if tag.starts_with("attr") {
+            let key = xml_attr(tag, "key").unwrap_or("");
+            let value =
+                if tag.ends_with('/') { "" } else { xml[pos..].split('<').next().unwrap_or("").trim() };
+            let n = path.len();
+            let (id, in_info) = match path.iter().rposition(|&p| p == "outInfo") {
+                Some(i) if i + 2 == n => (path[n - 1], false),
+                Some(i) if i + 3 == n && path[n - 1] == "info" => (path[n - 2], true),
+                _ => continue,
+            };
+            let k = match streams.iter().position(|s| s.0 == id) {
+                Some(k) => k,
+                None => {
+                    streams.push((id.to_string(), None, None, None));
+                    streams.len() - 1
+                }
+            };
+            let slot = match (in_info, key) {
+                (false, "typeIdentifier") => &mut streams[k].1,
+                (true, "sizeX") => &mut streams[k].2,
+                (true, "sizeY") => &mut streams[k].3,
+                _ => continue,
+            };
+            *slot = Some(value.to_string());
+        }
+    }
+    let (id, _, sx, sy) = streams
+        .iter()
+        .find(|s| s.1.as_deref() == Some("EVTS"))
+        .ok_or("no stream with typeIdentifier EVTS")?;
+    let id = id.parse::<i32>().map_err(|_| format!("stream ID `{id}` is not a number"))?;
+    let size = |v: &Option<String>, name: &str| -> Walk<u32> {
+        v.as_deref().map_or(Ok(0), |s| s.parse().map_err(|_| format!("{name} `{s}` is not a number")))
+    };
+    Ok((id, size(sx, "sizeX")?, size(sy, "sizeY")?))
+}
+
+// ---- Packets ----
+
+/// Streaming AEDAT 4.0 decoder; fed the bytes from `data_offset` on.
+#[derive(Debug, Clone)]
+pub struct Aedat4Decoder {
+    path: String,
+    compression: Aedat4Compression,
+    data_table_position: i64,
+    stream: i32,
+    width: u32,
+    height: u32,
+    /// Reached the FileDataTable: everything after it is ignored.
+    done: bool,
+    stats: DecodeStats,
+}
+
+/// One decompressed event packet: the `Event` structs are `buf[start..start + 16·count]`.
+struct Unpacked<'a> {
+    offset: u64,
+    buf: Cow<'a, [u8]>,
+    start: usize,
+    count: usize,
+}
+
+impl Aedat4Decoder {
+    pub fn new(path: &str, header: &Aedat4Header) -> Self {
+        Aedat4Decoder {
+            path: path.to_string(),
+            compression: header.compression,
+            data_table_position: header.data_table_position,
+            stream: header.event_stream_id,
+            width: header.width,
+            height: header.height,
+            done: false,
+            stats: DecodeStats::default(),
+        }
+    }
+
+    /// What was skipped so far (packets of other streams).
+    pub fn stats(&self) -> DecodeStats {
+        self.stats
+    }
+
+    fn packet_error(&self, offset: u64, message: impl Into<String>) -> Error {
+        Error::format(&self.path, format!("byte offset {offset} (event packet)"), message)
+    }
+
+    /// Decompress one event packet payload and locate its `Event` structs.
+    fn unpack<'a>(&self, offset: u64, payload: &'a [u8]) -> Result<Unpacked<'a>> {
+        let buf: Cow<'a, [u8]> = match self.compression {
+            Aedat4Compression::None => Cow::Borrowed(payload),
+            Aedat4Compression::Lz4 => {
+                let mut v = Vec::with_capacity(payload.len() * 2);
+                lz4_flex::frame::FrameDecoder::new(payload)
+                    .read_to_end(&mut v)
+                    .map_err(|e| self.packet_error(offset, format!("bad LZ4 frame: {e}")))?;
+                Cow::Owned(v)
+            }
+            Aedat4Compression::Zstd => {
+                Cow::Owned(zstd_decompress(payload).map_err(|m| self.packet_error(offset, m))?)
+            }
+        };
+        let (start, count) = event_structs(&buf).map_err(|m| self.packet_error(offset, m))?;
+        Ok(Unpacked { offset, buf, start, count })
+    }
+
+    /// Copy a packet's events into the column slices, checking coordinates.
+    fn fill(
+        &self,
+        p: &Unpacked<'_>,
+        t: &mut [i64],
+        x: &mut [u16],
+        y: &mut [u16],
+        pol: &mut [i8],
+    ) -> Result<()> {
+        let xlim = if self.width == 0 { 1 << 15 } else { self.width as i32 };
+        let ylim = if self.height == 0 { 1 << 15 } else { self.height as i32 };
+        let structs = p.buf[p.start..p.start + EVENT_SIZE * p.count].chunks_exact(EVENT_SIZE);
+        for (j, e) in structs.enumerate() {
+            let ex = i16::from_le_bytes([e[8], e[9]]) as i32;
+            let ey = i16::from_le_bytes([e[10], e[11]]) as i32;
+            if !(0..xlim).contains(&ex) || !(0..ylim).contains(&ey) {
+                return Err(self.packet_error(
+                    p.offset,
+                    format!("event {j}: ({ex}, {ey}) outside the {}x{} sensor", self.width, self.height),
+                ));
+            }
+            t[j] = i64::from_le_bytes(e[0..8].try_into().unwrap());
+            x[j] = ex as u16;
+            y[j] = ey as u16;
+            pol[j] = if e[12] != 0 { 1 } else { -1 };
+        }
+        Ok(())
+    }
+}
+
+/// Check the size prefix and identifier of a decompressed `EventPacket` and find its elements.
+fn event_structs(buf: &[u8]) -> Walk<(usize, usize)> {
+    let prefix = u32_at(buf, 0)?;
+    if prefix + 4 != buf.len() {
+        return Err(format!(
+            "size prefix {prefix} does not match the {}-byte decompressed packet",
+            buf.len()
+        ));
+    }
+    let b = &buf[4..];
+    let table = root(b, b"EVTS")?;
+    let (start, count) = vector(b, table, 0)?;
+    if count.checked_mul(EVENT_SIZE).and_then(|n| n.checked_add(start)).is_none_or(|end| end > b.len()) {
+        return Err(format!("{count} events do not fit the {}-byte packet", buf.len()));
+    }
+    Ok((start + 4, count))
+}
+
+/// Decompress one zstd frame (its content size, when given, sizes the buffer up front).
+fn zstd_decompress(payload: &[u8]) -> Walk<Vec<u8>> {
+    let mut decoder =
+        ruzstd::decoding::StreamingDecoder::new(payload).map_err(|e| format!("bad ZSTD frame: {e}"))?;
+    let mut v = Vec::with_capacity(payload.len() * 2);
+    decoder.read_to_end(&mut v).map_err(|e| format!("bad ZSTD frame: {e}"))?;
+    Ok(v)
+}
+
+impl Decoder for Aedat4Decoder {
+    /// Consumes whole packets only; a packet larger than `data` consumes nothing, so the caller must
+    /// feed a bigger piece. Once at `data_table_position`, everything is consumed and ignored.
+    fn decode(&mut self, data: &[u8], offset: u64, out: &mut Events) -> Result<usize> {
+        if out.width == 0 && out.height == 0 {
+            (out.width, out.height) = (self.width, self.height);
+        }
+        let table = u64::try_from(self.data_table_position).ok();
+        let mut pos = 0;
+        let mut packets = Vec::new();
+        while !self.done {
+            let at = offset + pos as u64;
+            if table.is_some_and(|table| at >= table) {
+                self.done = true;
+                break;
+            }
+            let Ok(head) = bytes::<8>(&data[pos..], 0) else { break };
+            let id = i32::from_le_bytes(head[0..4].try_into().unwrap());
+            let size = i32::from_le_bytes(head[4..8].try_into().unwrap());
+            let end = at
+                + 8
+                + u64::try_from(size).map_err(|_| {
+                    Error::format(
+                        &self.path,
+                        format!("byte offset {at}"),
+                        format!("negative packet size {size}"),
+                    )
+                })?;
+            if let Some(table) = table.filter(|&table| end > table) {
+                return Err(Error::format(
+                    &self.path,
+                    format!("byte offset {at}"),
+                    format!("packet of {size} bytes runs past the FileDataTable at byte offset {table}"),
+                ));
+            }
+            let end = (end - offset) as usize;
+            if end > data.len() {
+                break;
+            }
+            if id == self.stream {
+                packets.push((at, &data[pos + 8..end]));
+            } else {
+                self.stats.skipped_packets += 1;
+            }
+            pos = end;
+        }
+        let unpacked: Vec<Result<Unpacked>> =
+            packets.par_iter().map(|&(at, payload)| self.unpack(at, payload)).collect();
+        let unpacked = unpacked.into_iter().collect::<Result<Vec<_>>>()?;
+
+        let old = out.len();
+        let total: usize = unpacked.iter().map(|p| p.count).sum();
+        out.t.resize(old + total, 0);
+        out.x.resize(old + total, 0);
+        out.y.resize(old + total, 0);
+        out.p.resize(old + total, 0);
+        let (mut t, mut x, mut y, mut p) =
+            (&mut out.t[old..], &mut out.x[old..], &mut out.y[old..], &mut out.p[old..]);
+        let mut jobs = Vec::with_capacity(unpacked.len());
+        for packet in &unpacked {
+            let n = packet.count;
+            let (t0, t1) = std::mem::take(&mut t).split_at_mut(n);
+            let (x0, x1) = std::mem::take(&mut x).split_at_mut(n);
+            let (y0, y1) = std::mem::take(&mut y).split_at_mut(n);
+            let (p0, p1) = std::mem::take(&mut p).split_at_mut(n);
+            jobs.push((packet, t0, x0, y0, p0));
+            (t, x, y, p) = (t1, x1, y1, p1);
+        }
+        let filled: Vec<Result<()>> =
+            jobs.into_par_iter().map(|(pk, t, x, y, p)| self.fill(pk, t, x, y, p)).collect();
+        if let Some(e) = filled.into_iter().find_map(|r| r.err()) {
+            out.t.truncate(old);
+            out.x.truncate(old);
+            out.y.truncate(old);
+            out.p.truncate(old);
+            return Err(e);
+        }
+        Ok(if self.done { data.len() } else { pos })
+    }
+
+    /// A partial packet at end of file, or a file ending before `data_table_position`, is an error.
+    fn finish(&mut self, tail: &[u8], offset: u64, out: &mut Events) -> Result<()> {
+        let used = self.decode(tail, offset, out)?;
+        let end = offset + tail.len() as u64;
+        if used < tail.len() {
+            let at = offset + used as u64;
+            return Err(Error::format(
+                &self.path,
+                format!("byte offset {at}"),
+                format!("truncated packet: the file ends {} bytes later", end - at),
+            ));
+        }
+        if !self.done && self.data_table_position >= 0 && end < self.data_table_position as u64 {
+            return Err(Error::format(
+                &self.path,
+                format!("byte offset {end}"),
+                format!("file ends before its data table at byte offset {}", self.data_table_position),
+            ));
+        }
+        Ok(())
+    }
+}
+
+// ---- Encoder ----
+
+/// Byte offset of `dataTablePosition` in the file written by [`encode_aedat4`] (patched at the end).
+const DATA_TABLE_FIELD: usize = 18 + 32;
+
+/// Encode events as a complete AEDAT 4.0 file: one event stream (ID 0), `events_per_packet` events per
+/// packet, each packet compressed as one LZ4 frame (linked blocks, as DV writes) or one ZSTD frame
+/// (with its content size, which DV requires), then a FileDataTable. Panics if `events_per_packet`
+/// is 0 or a coordinate exceeds i16.
+pub fn encode_aedat4(
+    ev: EventsView<'_>,
+    compression: Aedat4Compression,
+    events_per_packet: usize,
+) -> Vec<u8> {
+    assert!(events_per_packet > 0, "encode_aedat4: events_per_packet must be positive");
+    let header = io_header(compression, &info_xml(ev.width, ev.height, compression));
+    let mut out = MAGIC.to_vec();
+    out.extend_from_slice(&(header.len() as u32).to_le_bytes());
+    out.extend_from_slice(&header);
+    let starts: Vec<usize> = (0..ev.len()).step_by(events_per_packet).collect();
+    let payloads: Vec<Vec<u8>> = starts
+        .par_iter()
+        .map(|&s| compress(&event_packet(ev, s, (s + events_per_packet).min(ev.len())), compression))
+        .collect();
+    let mut table = Vec::with_capacity(starts.len());
+    for (&s, payload) in starts.iter().zip(&payloads) {
+        let e = (s + events_per_packet).min(ev.len());
+        table.push(TableEntry {
+            offset: out.len() + 8,
+            size: payload.len(),
+            count: e - s,
+            t0: ev.t[s],
+            t1: ev.t[e - 1],
+        });
+        out.extend_from_slice(&0i32.to_le_bytes());
+        out.extend_from_slice(&(payload.len() as i32).to_le_bytes());
+        out.extend_from_slice(payload);
+    }
+    let position = out.len() as i64;
+    out[DATA_TABLE_FIELD..DATA_TABLE_FIELD + 8].copy_from_slice(&position.to_le_bytes());
+    out.extend_from_slice(&compress(&data_table(&table), compression));
+    out
+}
+
+fn info_xml(width: u32, height: u32, compression: Aedat4Compression) -> String {
+    let compression = match compression {
+        Aedat4Compression::None => "NONE",
+        Aedat4Compression::Lz4 => "LZ4",
+        Aedat4Compression::Zstd => "ZSTD",
+    };
+    format!(
+        r#"<dv version="2.0">
+    <node name="outInfo" path="/outInfo/">
+        <node name="0" path="/outInfo/0/">
+            <attr key="compression" type="string">{compression}</attr>
+            <attr key="originalModuleName" type="string">evgs</attr>
+            <attr key="originalOutputName" type="string">events</attr>
+            <attr key="typeDescription" type="string">Array of events (polarity ON/OFF).</attr>
+            <attr key="typeIdentifier" type="string">EVTS</attr>
+            <node name="info" path="/outInfo/0/info/">
+                <attr key="sizeX" type="int">{width}</attr>
+                <attr key="sizeY" type="int">{height}</attr>
+                <attr key="source" type="string">evgs</attr>
+                <attr key="tsOffset" type="long">0</attr>
+            </node>
+        </node>
+    </node>
+</dv>
+"#
+    )
+}
+
+/// IOHeader FlatBuffer (without size prefix): vtable at 8, table at 24 with compression (i32) at 28,
+/// dataTablePosition (i64, −1 until patched) at 32 and the infoNode string reference at 40.
+fn io_header(compression: Aedat4Compression, xml: &str) -> Vec<u8> {
+    let code: i32 = match compression {
+        Aedat4Compression::None => 0,
+        Aedat4Compression::Lz4 => 1,
+        Aedat4Compression::Zstd => 3,
+    };
+    let mut b = Vec::with_capacity(48 + xml.len());
+    b.extend_from_slice(&24u32.to_le_bytes());
+    b.extend_from_slice(b"IOHE");
+    for v in [10u16, 20, 4, 8, 16] {
+        b.extend_from_slice(&v.to_le_bytes());
+    }
+    b.resize(24, 0);
+    b.extend_from_slice(&16i32.to_le_bytes());
+    b.extend_from_slice(&code.to_le_bytes());
+    b.extend_from_slice(&(-1i64).to_le_bytes());
+    b.extend_from_slice(&4u32.to_le_bytes());
+    b.extend_from_slice(&(xml.len() as u32).to_le_bytes());
+    b.extend_from_slice(xml.as_bytes());
+    b.push(0);
+    b.resize(b.len().next_multiple_of(4), 0);
+    b
+}
+
+/// Size-prefixed `EventPacket` for events `s..e`, laid out as DV does: root table at 16, vtable at 10,
+/// the element vector at 24 and the 16-byte structs from 28.
+fn event_packet(ev: EventsView<'_>, s: usize, e: usize) -> Vec<u8> {
+    let n = e - s;
+    let mut b = Vec::with_capacity(32 + EVENT_SIZE * n);
+    b.extend_from_slice(&((28 + EVENT_SIZE * n) as u32).to_le_bytes());
+    b.extend_from_slice(&16u32.to_le_bytes());
+    b.extend_from_slice(b"EVTS");
+    b.extend_from_slice(&[0, 0, 6, 0, 8, 0, 4, 0]);
+    b.extend_from_slice(&6i32.to_le_bytes());
+    b.extend_from_slice(&4u32.to_le_bytes());
+    b.extend_from_slice(&(n as u32).to_le_bytes());
+    for i in s..e {
+        let (x, y) = (i16::try_from(ev.x[i]), i16::try_from(ev.y[i]));
+        let (Ok(x), Ok(y)) = (x, y) else { panic!("encode_aedat4: event {i}: coordinates exceed i16") };
+        b.extend_from_slice(&ev.t[i].to_le_bytes());
+        b.extend_from_slice(&x.to_le_bytes());
+        b.extend_from_slice(&y.to_le_bytes());
+        b.extend_from_slice(&[u8::from(ev.p[i] > 0), 0, 0, 0]);
+    }
+    b
+}
+
+/// One FileDataTable row: where a packet's payload is and what it holds.
+struct TableEntry {
+    offset: usize,
+    size: usize,
+    count: usize,
+    t0: i64,
+    t1: i64,
+}
+
+/// Size-prefixed `FileDataTable` (identifier `FTAB`): a vector of tables sharing one vtable, each
+/// ByteOffset, PacketInfo{StreamID, Size}, NumElements, TimestampStart, TimestampEnd.
+fn data_table(entries: &[TableEntry]) -> Vec<u8> {
+    let n = entries.len();
+    let vtable = 28 + 4 * n;
+    let first = (vtable + 14).next_multiple_of(8);
+    let mut b = Vec::with_capacity(first + 48 * n + 4);
+    b.extend_from_slice(&16u32.to_le_bytes());
+    b.extend_from_slice(b"FTAB");
+    b.extend_from_slice(&[0, 0, 6, 0, 8, 0, 4, 0]);
+    b.extend_from_slice(&6i32.to_le_bytes());
+    b.extend_from_slice(&4u32.to_le_bytes());
+    b.extend_from_slice(&(n as u32).to_le_bytes());
+    for k in 0..n {
+        b.extend_from_slice(&((first + 48 * k - (28 + 4 * k)) as u32).to_le_bytes());
+    }
+    for v in [14u16, 48, 8, 16, 24, 32, 40] {
+        b.extend_from_slice(&v.to_le_bytes());
+    }
+    b.resize(first, 0);
+    for (k, e) in entries.iter().enumerate() {
+        b.extend_from_slice(&((first + 48 * k - vtable) as i32).to_le_bytes());
+        b.extend_from_slice(&[0; 4]);
+        b.extend_from_slice(&(e.offset as i64).to_le_bytes());
+        b.extend_from_slice(&0i32.to_le_bytes());
+        b.extend_from_slice(&(e.size as i32).to_le_bytes());
+        b.extend_from_slice(&(e.count as i64).to_le_bytes());
+        b.extend_from_slice(&e.t0.to_le_bytes());
+        b.extend_from_slice(&e.t1.to_le_bytes());
+    }
+    let mut out = (b.len() as u32).to_le_bytes().to_vec();
+    out.extend_from_slice(&b);
+    out
+}
+
+fn compress(buf: &[u8], compression: Aedat4Compression) -> Vec<u8> {
+    match compression {
+        Aedat4Compression::None => buf.to_vec(),
+        Aedat4Compression::Lz4 => {
+            use lz4_flex::frame::{BlockMode, FrameEncoder, FrameInfo};
+            use std::io::Write;
+            let info = FrameInfo::new().content_size(Some(buf.len() as u64)).block_mode(BlockMode::Linked);
+            let mut enc = FrameEncoder::with_frame_info(info, Vec::with_capacity(buf.len() / 2));
+            enc.write_all(buf).expect("writing to a Vec cannot fail");
+            enc.finish().expect("writing to a Vec cannot fail")
+        }
+        Aedat4Compression::Zstd => {
+            let mut z = ruzstd::encoding::compress_to_vec(buf, ruzstd::encoding::CompressionLevel::Fastest);
+            // ruzstd writes no content size; set the frame-content-size flag to 8 bytes (RFC 8878
+            // §3.1.1.1.1) and insert the size after the window descriptor.
+            assert_eq!(z[4] & 0xE3, 0, "unexpected zstd frame header");
+            z[4] |= 0xC0;
+            z.splice(6..6, (buf.len() as u64).to_le_bytes());
+            z
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::raw_header::feed;
+    use super::*;
+
+    type Ev = (i64, i16, i16, bool);
+
+    const XML: &str = r#"<dv version="2.0">
+ <node name="outInfo" path="/outInfo/">
+  <node name="0" path="/outInfo/0/">
+   <attr key="typeIdentifier" type="string">IMUS</attr>
+  </node>
+  <node name="2" path="/outInfo/2/">
+   <attr key="typeIdentifier" type="string">FRME</attr>
+   <node name="info" path="/outInfo/2/info/"><attr key="sizeX" type="int">99</attr></node>
+  </node>
+  <!-- a <node> inside a comment -->
+  <node name="3" path="/outInfo/3/">
+   <attr key="compression" type="string">LZ4</attr>
+   <attr key="typeIdentifier" type="string">EVTS</attr>
+   <node name="info" path="/outInfo/3/info/">
+    <attr key="sizeX" type="int">64</attr>
+    <attr key="sizeY" type="int">48</attr>
+    <attr key="source" type="string">DVXplorer_DXA00093</attr>
+    <attr key="tsOffset" type="long">1633000000000000</attr>
+   </node>
+  </node>
+ </node>
+</dv>"#;
+
+    /// IOHeader laid out differently from the encoder's: table at 8, vtable *after* it (negative
+    /// soffset), absent fields marked by a zero vtable entry.
+    fn io_header(compression: Option<i32>, table_position: Option<i64>, xml: &str) -> Vec<u8> {
+        let mut b = vec![8, 0, 0, 0, b'I', b'O', b'H', b'E'];
+        b.extend_from_slice(&(8i32 - 28).to_le_bytes()); // soffset: vtable at 28
+        b.extend_from_slice(&compression.unwrap_or(0).to_le_bytes()); // 12
+        b.extend_from_slice(&table_position.unwrap_or(0).to_le_bytes()); // 16
+        b.extend_from_slice(&(40u32 - 24).to_le_bytes()); // 24: string at 40
+        let c = if compression.is_some() { 4 } else { 0 };
+        let d = if table_position.is_some() { 8 } else { 0 };
+        for v in [10u16, 20, c, d, 16] {
+            b.extend_from_slice(&v.to_le_bytes());
+        }
+        b.extend_from_slice(&[0, 0]);
+        b.extend_from_slice(&(xml.len() as u32).to_le_bytes());
+        b.extend_from_slice(xml.as_bytes());
+        b.push(0);
+        let mut file = MAGIC.to_vec();
+        file.extend_from_slice(&(b.len() as u32).to_le_bytes());
+        file.extend(b);
+        file
+    }
+
+    /// Size-prefixed EventPacket: table at 8, vtable after it at 16, vector at 24.
+    fn events_packet(events: &[Ev]) -> Vec<u8> {
+        let mut b = vec![8, 0, 0, 0, b'E', b'V', b'T', b'S'];
+        b.extend_from_slice(&(8i32 - 16).to_le_bytes());
+        b.extend_from_slice(&(24u32 - 12).to_le_bytes());
+        b.extend_from_slice(&[6, 0, 8, 0, 4, 0, 0, 0]);
+        b.extend_from_slice(&(events.len() as u32).to_le_bytes());
+        for &(t, x, y, on) in events {
+            b.extend_from_slice(&t.to_le_bytes());
+            b.extend_from_slice(&x.to_le_bytes());
+            b.extend_from_slice(&y.to_le_bytes());
+            b.extend_from_slice(&[u8::from(on), 0, 0, 0]);
+        }
+        let mut out = (b.len() as u32).to_le_bytes().to_vec();
+        out.extend(b);
+        out
+    }
+
+    /// An EventPacket whose vtable has no slots: `elements` absent, i.e. empty.
+    fn empty_packet() -> Vec<u8> {
+        let b = [8, 0, 0, 0, b'E', b'V', b'T', b'S', 0xFC, 0xFF, 0xFF, 0xFF, 4, 0, 4, 0];
+        let mut out = 16u32.to_le_bytes().to_vec();
+        out.extend(b);
+        out
+    }
+
+    /// An LZ4 frame (magic, FLG 0x60: version 1, independent blocks, no checksums; BD 0x40: 64 KiB;
+    /// header checksum 0x82) holding one uncompressed block, then the end mark.
+    fn lz4_stored(data: &[u8]) -> Vec<u8> {
+        let mut f = vec![0x04, 0x22, 0x4D, 0x18, 0x60, 0x40, 0x82];
+        f.extend_from_slice(&(0x8000_0000u32 | data.len() as u32).to_le_bytes());
+        f.extend_from_slice(data);
+        f.extend_from_slice(&0u32.to_le_bytes());
+        f
+    }
+
+    /// A zstd frame (single segment, 1- or 2-byte content size) holding one raw last block.
+    fn zstd_raw(data: &[u8]) -> Vec<u8> {
+        let mut f = vec![0x28, 0xB5, 0x2F, 0xFD];
+        if data.len() < 256 {
+            f.extend_from_slice(&[0x20, data.len() as u8]);
+        } else {
+            f.push(0x60);
+            f.extend_from_slice(&(data.len() as u16 - 256).to_le_bytes());
+        }
+        let block = ((data.len() as u32) << 3) | 1;
+        f.extend_from_slice(&block.to_le_bytes()[..3]);
+        f.extend_from_slice(data);
+        f
+    }
+
+    fn packet(stream: i32, payload: &[u8]) -> Vec<u8> {
+        let mut p = stream.to_le_bytes().to_vec();
+        p.extend_from_slice(&(payload.len() as i32).to_le_bytes());
+        p.extend_from_slice(payload);
+        p
+    }
+
+    fn as_tuples(ev: &Events) -> Vec<Ev> {
+        (0..ev.len()).map(|i| (ev.t[i], ev.x[i] as i16, ev.y[i] as i16, ev.p[i] > 0)).collect()
+    }
+
+    fn decode(file: &[u8], piece: usize) -> Result<(Events, DecodeStats)> {
+        let h = parse_aedat4_header(file, "f.aedat4")?;
+        let mut dec = Aedat4Decoder::new("f.aedat4", &h);
+        let ev = feed::pieces(&mut dec, &file[h.data_offset..], h.data_offset as u64, piece)?;
+        Ok((ev, dec.stats()))
+    }
+
+    const A: [Ev; 3] = [
+        (1_633_000_000_000_001, 0, 0, true),
+        (1_633_000_000_000_002, 63, 47, false),
+        (1_633_000_000_000_002, 5, 6, true),
+    ];
+    const B: [Ev; 2] = [(1_633_000_000_000_010, 7, 8, false), (1_633_000_000_000_011, 9, 10, true)];
+
+    #[test]
+    fn lz4_interleaved_streams_and_data_table() {
+        let mut file = io_header(Some(1), Some(0), XML);
+        let h_len = file.len();
+        for (stream, payload) in [
+            (0, lz4_stored(b"imu payload, never decoded")),
+            (3, lz4_stored(&events_packet(&A))),
+            (2, lz4_stored(&[0xFF; 40])),
+            (3, lz4_stored(&events_packet(&B))),
+        ] {
+            file.extend(packet(stream, &payload));
+        }
+        let table = file.len() as i64;
+        file[18 + 16..18 + 24].copy_from_slice(&table.to_le_bytes());
+        // The table starts with the LZ4 magic too; read as a packet it would be garbage.
+        file.extend_from_slice(&[0x04, 0x22, 0x4D, 0x18, 0x60, 0x40, 0x82, 0x10, 0, 0, 0, 1, 2]);
+
+        let h = parse_aedat4_header(&file, "f.aedat4").unwrap();
+        let want = Aedat4Header {
+            compression: Aedat4Compression::Lz4,
+            data_table_position: table,
+            width: 64,
+            height: 48,
+            event_stream_id: 3,
+            data_offset: h_len,
+        };
+        assert_eq!(h, want);
+        let expected: Vec<Ev> = A.iter().chain(&B).copied().collect();
+        for piece in [usize::MAX, 7, 1] {
+            let (ev, stats) = decode(&file, piece.min(file.len())).unwrap();
+            assert_eq!(as_tuples(&ev), expected, "piece {piece}");
+            assert_eq!((ev.width, ev.height), (64, 48));
+            assert_eq!(stats.skipped_packets, 2);
+        }
+    }
+
+    #[test]
+    fn absent_header_fields_take_defaults_and_absent_elements_are_empty() {
+        let mut file = io_header(None, None, XML);
+        file.extend(packet(3, &events_packet(&A)));
+        file.extend(packet(3, &empty_packet()));
+        file.extend(packet(3, &events_packet(&B)));
+        let h = parse_aedat4_header(&file, "f.aedat4").unwrap();
+        assert_eq!((h.compression, h.data_table_position), (Aedat4Compression::None, -1));
+        let (ev, _) = decode(&file, 5).unwrap();
+        assert_eq!(as_tuples(&ev), A.iter().chain(&B).copied().collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn zstd_packets_to_end_of_file_and_truncation() {
+        let mut file = io_header(Some(3), Some(-1), XML);
+        let many: Vec<Ev> = (0..20).map(|i| (1000 + i, i as i16, 2, i % 3 == 0)).collect();
+        file.extend(packet(3, &zstd_raw(&events_packet(&A))));
+        file.extend(packet(0, b"not even zstd"));
+        file.extend(packet(3, &zstd_raw(&events_packet(&many))));
+        let (ev, stats) = decode(&file, usize::MAX.min(file.len())).unwrap();
+        assert_eq!(as_tuples(&ev), A.iter().chain(&many).copied().collect::<Vec<_>>());
+        assert_eq!(stats.skipped_packets, 1);
+
+        let last = file.len() - (8 + zstd_raw(&events_packet(&many)).len());
+        let e = decode(&file[..file.len() - 3], 64).unwrap_err().to_string();
+        assert!(
+            e.contains("f.aedat4") && e.contains(&format!("byte offset {last}")) && e.contains("truncated"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn bad_input_names_the_position() {
+        let e = parse_aedat4_header(b"#!AEDAT4.0\r\n\0\0\0\0", "f.aedat4").unwrap_err().to_string();
+        assert!(e.contains("magic"), "{e}");
+        let full = io_header(Some(0), None, XML);
+        let e = parse_aedat4_header(&full[..40], "f.aedat4").unwrap_err().to_string();
+        assert!(e.contains("IOHeader"), "{e}");
+        let e = parse_aedat4_header(&io_header(Some(7), None, XML), "f.aedat4").unwrap_err().to_string();
+        assert!(e.contains("compression 7"), "{e}");
+        let e = parse_aedat4_header(&io_header(None, None, "<dv></dv>"), "f.aedat4").unwrap_err().to_string();
+        assert!(e.contains("EVTS"), "{e}");
+
+        let mut file = io_header(None, None, XML);
+        let at = file.len();
+        file.extend(packet(3, &events_packet(&[(5, 64, 0, true)])));
+        let e = decode(&file, 1000).unwrap_err().to_string();
+        assert!(e.contains(&format!("byte offset {at}")) && e.contains("(64, 0)"), "{e}");
+
+        let mut file = io_header(Some(0), Some(0), XML);
+        let at = file.len();
+        file.extend(packet(3, &events_packet(&A)));
+        let table = (file.len() - 4) as i64;
+        file[18 + 16..18 + 24].copy_from_slice(&table.to_le_bytes());
+        let e = decode(&file, 1000).unwrap_err().to_string();
+        assert!(e.contains(&format!("byte offset {at}")) && e.contains("runs past"), "{e}");
+
+        let mut file = io_header(None, None, XML);
+        let mut bad = events_packet(&A);
+        bad[8] = b'X';
+        file.extend(packet(3, &bad));
+        let e = decode(&file, 1000).unwrap_err().to_string();
+        assert!(e.contains("identifier"), "{e}");
+    }
+
+    #[test]
+    fn round_trips_with_data_table() {
+        let ev = feed::random_events(10_000, 3, 1_700_000_000_000_000, 5, 346, 260);
+        for compression in [Aedat4Compression::None, Aedat4Compression::Lz4, Aedat4Compression::Zstd] {
+            let file = encode_aedat4(ev.view(), compression, 777);
+            let h = parse_aedat4_header(&file, "f.aedat4").unwrap();
+            assert_eq!((h.compression, h.width, h.height, h.event_stream_id), (compression, 346, 260, 0));
+            for piece in [file.len(), 4096, 7] {
+                let (got, _) = decode(&file, piece).unwrap();
+                assert_eq!(got, ev, "{compression:?} piece {piece}");
+            }
+            // The table indexes every packet's payload.
+            let position = h.data_table_position as usize;
+            let table = match compression {
+                Aedat4Compression::None => file[position..].to_vec(),
+                Aedat4Compression::Lz4 => {
+                    let mut v = Vec::new();
+                    lz4_flex::frame::FrameDecoder::new(&file[position..]).read_to_end(&mut v).unwrap();
+                    v
+                }
+                Aedat4Compression::Zstd => zstd_decompress(&file[position..]).unwrap(),
+            };
+            let b = &table[4..];
+            let (first, n) = vector(b, root(b, b"FTAB").unwrap(), 0).unwrap();
+            assert_eq!(n, 10_000usize.div_ceil(777));
+            let mut offset = h.data_offset;
+            for k in 0..n {
+                let entry = follow(b, first + 4 * k).unwrap();
+                let at =
+                    |slot| i64::from_le_bytes(bytes(b, field(b, entry, slot).unwrap().unwrap()).unwrap());
+                assert_eq!(at(0) as usize, offset + 8);
+                let size = u32_at(&file, offset + 4).unwrap();
+                assert_eq!(at(1), (size as i64) << 32); // PacketInfo{stream 0, size}
+                assert_eq!(at(2), if k + 1 < n { 777 } else { 10_000 % 777 });
+                assert_eq!((at(3), at(4)), (ev.t[k * 777], ev.t[(k * 777 + 776).min(9_999)]));
+                offset += 8 + size;
+            }
+            assert_eq!(offset, position);
+        }
+    }
+
+    #[test]
+    fn zstd_frames_carry_their_content_size() {
+        let data: Vec<u8> = (0..5000u32).map(|i| (i * 7 % 251) as u8).collect();
+        let z = compress(&data, Aedat4Compression::Zstd);
+        let mut frame = ruzstd::decoding::FrameDecoder::new();
+        frame.init(&z[..]).unwrap();
+        assert_eq!(frame.content_size(), 5000);
+        assert_eq!(zstd_decompress(&z).unwrap(), data);
+    }
+}

@@ -8,6 +8,7 @@ pub mod evt3;
 pub mod index;
 pub mod npy;
 pub mod raw_header;
+pub mod reader;
 pub mod text;
 pub mod window;
 

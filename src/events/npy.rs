@@ -1,1 +1,600 @@
 //! NumPy `.npy` reader and writer (the IncEventGS N×4 float layout and structured arrays).
+//!
+//! Header per the NPY format spec: magic `\x93NUMPY`, version byte pair, a little-endian u16 (v1) or
+//! u32 (v2, v3) header length, then a Python dict literal with `descr`, `fortran_order` and `shape`.
+//! Two array kinds hold events: a 2-D `(N, K≥4)` numeric array (columns x, y, t, p by default, as
+//! IncEventGS writes them) and a 1-D structured array whose field names say which is which.
+//! Float times are seconds, integer times microseconds, unless a unit is given.
+
+use rayon::prelude::*;
+
+use crate::error::{Error, Result};
+use crate::events::text::TimeUnit;
+use crate::events::{Decoder, Events, EventsView};
+
+pub const MAGIC: &[u8] = b"\x93NUMPY";
+
+/// A Python literal as it appears in an NPY header.
+#[derive(Debug, Clone, PartialEq)]
+enum Lit {
+    Str(String),
+    Int(u64),
+    Bool(bool),
+    Seq(Vec<Lit>),
+    Dict(Vec<(Lit, Lit)>),
+}
+
+struct LitParser<'a> {
+    s: &'a [u8],
+    i: usize,
+}
+
+impl LitParser<'_> {
+    fn ws(&mut self) {
+        while self.i < self.s.len() && self.s[self.i].is_ascii_whitespace() {
+            self.i += 1;
+        }
+    }
+
+    fn eat(&mut self, c: u8) -> bool {
+        self.ws();
+        let hit = self.s.get(self.i) == Some(&c);
+        self.i += usize::from(hit);
+        hit
+    }
+
+    fn value(&mut self) -> std::result::Result<Lit, String> {
+        self.ws();
+        let c = *self.s.get(self.i).ok_or("unexpected end of header")?;
+        match c {
+            b'\'' | b'"' => {
+                let end = self.s[self.i + 1..].iter().position(|&b| b == c).ok_or("unterminated string")?;
+                let v = String::from_utf8_lossy(&self.s[self.i + 1..self.i + 1 + end]).into_owned();
+                self.i += end + 2;
+                Ok(Lit::Str(v))
+            }
+            b'(' | b'[' => {
+                let close = if c == b'(' { b')' } else { b']' };
+                self.i += 1;
+                let mut items = Vec::new();
+                while !self.eat(close) {
+                    items.push(self.value()?);
+                    if !self.eat(b',') && !self.eat(close) {
+                        return Err(format!("expected ',' or '{}' at header byte {}", close as char, self.i));
+                    } else if self.s[self.i - 1] == close {
+                        break;
+                    }
+                }
+                Ok(Lit::Seq(items))
+            }
+            b'{' => {
+                self.i += 1;
+                let mut items = Vec::new();
+                while !self.eat(b'}') {
+                    let k = self.value()?;
+                    if !self.eat(b':') {
+                        return Err(format!("expected ':' at header byte {}", self.i));
+                    }
+                    items.push((k, self.value()?));
+                    if !self.eat(b',') && !self.eat(b'}') {
+                        return Err(format!("expected ',' or '}}' at header byte {}", self.i));
+                    } else if self.s[self.i - 1] == b'}' {
+                        break;
+                    }
+                }
+                Ok(Lit::Dict(items))
+            }
+            _ => {
+                let start = self.i;
+                while self.i < self.s.len()
+                    && (self.s[self.i].is_ascii_alphanumeric() || self.s[self.i] == b'_')
+                {
+                    self.i += 1;
+                }
+                match &self.s[start..self.i] {
+                    b"True" => Ok(Lit::Bool(true)),
+                    b"False" => Ok(Lit::Bool(false)),
+                    w => std::str::from_utf8(w)
+                        .ok()
+                        .and_then(|w| w.trim_end_matches('L').parse().ok())
+                        .map(Lit::Int)
+                        .ok_or_else(|| {
+                            format!("unexpected {:?} at header byte {start}", String::from_utf8_lossy(w))
+                        }),
+                }
+            }
+        }
+    }
+}
+
+/// Scalar element types an event column may have.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Scalar {
+    Bool,
+    I8,
+    U8,
+    I16,
+    U16,
+    I32,
+    U32,
+    I64,
+    U64,
+    F32,
+    F64,
+}
+
+impl Scalar {
+    fn size(self) -> usize {
+        match self {
+            Scalar::Bool | Scalar::I8 | Scalar::U8 => 1,
+            Scalar::I16 | Scalar::U16 => 2,
+            Scalar::I32 | Scalar::U32 | Scalar::F32 => 4,
+            Scalar::I64 | Scalar::U64 | Scalar::F64 => 8,
+        }
+    }
+
+    fn is_float(self) -> bool {
+        matches!(self, Scalar::F32 | Scalar::F64)
+    }
+
+    /// Parse a dtype string such as `<f4`, `|b1`, `>i8`; returns the type and whether it is big-endian.
+    fn parse(descr: &str) -> std::result::Result<(Scalar, bool), String> {
+        let b = descr.as_bytes();
+        let (big, rest) = match b.first() {
+            Some(b'>') => (true, &descr[1..]),
+            Some(b'<' | b'|' | b'=') => (false, &descr[1..]),
+            _ => (false, descr),
+        };
+        let s = match rest {
+            "b1" | "?" => Scalar::Bool,
+            "i1" => Scalar::I8,
+            "u1" => Scalar::U8,
+            "i2" => Scalar::I16,
+            "u2" => Scalar::U16,
+            "i4" => Scalar::I32,
+            "u4" => Scalar::U32,
+            "i8" => Scalar::I64,
+            "u8" => Scalar::U64,
+            "f4" => Scalar::F32,
+            "f8" => Scalar::F64,
+            _ => return Err(format!("unsupported dtype {descr:?} for an event column")),
+        };
+        Ok((s, big && s.size() > 1))
+    }
+
+    /// Read the element at `b[..size]` as f64 (floats) or exact integer (ints) via `Num`.
+    #[inline]
+    fn read(self, b: &[u8], big: bool) -> Num {
+        macro_rules! rd {
+            ($t:ty, $n:expr) => {{
+                let a: [u8; $n] = b[..$n].try_into().unwrap();
+                if big {
+                    <$t>::from_be_bytes(a)
+                } else {
+                    <$t>::from_le_bytes(a)
+                }
+            }};
+        }
+        match self {
+            Scalar::Bool => Num::I(i64::from(b[0] != 0)),
+            Scalar::I8 => Num::I(i64::from(b[0] as i8)),
+            Scalar::U8 => Num::I(i64::from(b[0])),
+            Scalar::I16 => Num::I(i64::from(rd!(i16, 2))),
+            Scalar::U16 => Num::I(i64::from(rd!(u16, 2))),
+            Scalar::I32 => Num::I(i64::from(rd!(i32, 4))),
+            Scalar::U32 => Num::I(i64::from(rd!(u32, 4))),
+            Scalar::I64 => Num::I(rd!(i64, 8)),
+            Scalar::U64 => Num::I(i64::try_from(rd!(u64, 8)).unwrap_or(i64::MAX)),
+            Scalar::F32 => Num::F(f64::from(rd!(f32, 4))),
+            Scalar::F64 => Num::F(rd!(f64, 8)),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy)]
+enum Num {
+    I(i64),
+    F(f64),
+}
+
+/// Where one event column lives inside a row.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Field {
+    pub offset: usize,
+    pub scalar: Scalar,
+    pub big_endian: bool,
+}
+
+/// The parsed header: where rows start, how many, and where t/x/y/p sit in each row.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct NpyLayout {
+    pub data_offset: usize,
+    pub rows: u64,
+    pub row_size: usize,
+    /// t, x, y, p.
+    pub fields: [Field; 4],
+    pub time_unit: TimeUnit,
+}
+
+fn other_field_size(descr: &str) -> Option<usize> {
+    let d = descr.trim_start_matches(['<', '>', '|', '=']);
+    let n: usize = d.get(1..)?.parse().ok()?;
+    match d.as_bytes()[0] {
+        b'U' => Some(4 * n),
+        b'S' | b'V' | b'a' | b'c' | b'm' | b'M' => Some(n),
+        _ => None,
+    }
+}
+
+fn dict_get<'a>(d: &'a [(Lit, Lit)], key: &str) -> Option<&'a Lit> {
+    d.iter().find(|(k, _)| *k == Lit::Str(key.into())).map(|(_, v)| v)
+}
+
+fn field_index(name: &str) -> Option<usize> {
+    match name.to_ascii_lowercase().as_str() {
+        "t" | "ts" | "time" | "timestamp" | "timestamps" => Some(0),
+        "x" | "xs" => Some(1),
+        "y" | "ys" => Some(2),
+        "p" | "ps" | "pol" | "polarity" | "polarities" => Some(3),
+        _ => None,
+    }
+}
+
+/// Parse the NPY header at the start of `head`. `columns` (letters t/x/y/p/_, default `"xytp"`)
+/// names the columns of a 2-D array; `time_unit` overrides the float-seconds / integer-µs default.
+pub fn parse_npy_header(
+    head: &[u8],
+    path: &str,
+    columns: Option<&str>,
+    time_unit: Option<TimeUnit>,
+) -> Result<NpyLayout> {
+    let err = |loc: &str, msg: String| Error::format(path, loc, msg);
+    if !head.starts_with(MAGIC) || head.len() < 10 {
+        return Err(err("byte offset 0", "not an NPY file (no \\x93NUMPY magic)".into()));
+    }
+    let (len, start) = match head[6] {
+        1 => (usize::from(u16::from_le_bytes([head[8], head[9]])), 10),
+        2 | 3 if head.len() >= 12 => (u32::from_le_bytes(head[8..12].try_into().unwrap()) as usize, 12),
+        v => return Err(err("byte offset 6", format!("unsupported NPY version {v}"))),
+    };
+    let text = head.get(start..start + len).ok_or_else(|| {
+        err("byte offset 8", format!("header of {len} bytes is truncated (file has {} bytes)", head.len()))
+    })?;
+    let loc = format!("header at byte offset {start}");
+    let dict = match (LitParser { s: text, i: 0 }).value() {
+        Ok(Lit::Dict(d)) => d,
+        Ok(_) => return Err(err(&loc, "header is not a dict".into())),
+        Err(e) => return Err(err(&loc, e)),
+    };
+    let get = |k: &str| dict_get(&dict, k).ok_or_else(|| err(&loc, format!("header has no {k:?}")));
+    if *get("fortran_order")? != Lit::Bool(false) {
+        return Err(err(
+            &loc,
+            "Fortran-order arrays are not supported (save with np.ascontiguousarray)".into(),
+        ));
+    }
+    let shape: Vec<u64> = match get("shape")? {
+        Lit::Seq(s) => s
+            .iter()
+            .map(|v| if let Lit::Int(n) = v { Ok(*n) } else { Err(err(&loc, "bad shape".into())) })
+            .collect::<Result<_>>()?,
+        _ => return Err(err(&loc, "bad shape".into())),
+    };
+    let scalar = |d: &str| Scalar::parse(d).map_err(|m| err(&loc, m));
+    let mut fields: [Option<Field>; 4] = [None; 4];
+    let (rows, row_size) = match (get("descr")?, shape.as_slice()) {
+        (Lit::Str(d), [n, k]) => {
+            let (s, big) = scalar(d)?;
+            let letters = columns.unwrap_or("xytp");
+            if letters.len() as u64 != *k {
+                return Err(err(
+                    &loc,
+                    format!("array has {k} columns; columns={letters:?} names {}", letters.len()),
+                ));
+            }
+            for (j, c) in letters.chars().enumerate() {
+                if c == '_' {
+                    continue;
+                }
+                let slot = "txyp".find(c).ok_or_else(|| err(&loc, format!("bad column letter {c:?}")))?;
+                fields[slot] = Some(Field { offset: j * s.size(), scalar: s, big_endian: big });
+            }
+            (*n, *k as usize * s.size())
+        }
+        (Lit::Seq(items), [n]) => {
+            let mut off = 0;
+            for item in items {
+                let (name, d) = match item {
+                    Lit::Seq(v) if v.len() == 2 => match (&v[0], &v[1]) {
+                        (Lit::Str(name), Lit::Str(d)) => (name, d),
+                        _ => return Err(err(&loc, format!("unsupported structured field {item:?}"))),
+                    },
+                    _ => return Err(err(&loc, format!("unsupported structured field {item:?}"))),
+                };
+                let size = match Scalar::parse(d) {
+                    Ok((s, big)) => {
+                        if let Some(slot) = field_index(name) {
+                            fields[slot] = Some(Field { offset: off, scalar: s, big_endian: big });
+                        }
+                        s.size()
+                    }
+                    // Other fields are skipped: their size is the dtype's digits (×4 for unicode).
+                    Err(_) => other_field_size(d)
+                        .ok_or_else(|| err(&loc, format!("field {name:?} has unsupported dtype {d:?}")))?,
+                };
+                off += size;
+            }
+            (*n, off)
+        }
+        (d, s) => {
+            return Err(err(
+                &loc,
+                format!("expected an (N, 4) array or structured (N,) array, got {d:?} {s:?}"),
+            ))
+        }
+    };
+    let names = ["t", "x", "y", "p"];
+    let mut out = [Field { offset: 0, scalar: Scalar::U8, big_endian: false }; 4];
+    for (k, f) in fields.iter().enumerate() {
+        out[k] = f.ok_or_else(|| err(&loc, format!("no {} column/field", names[k])))?;
+    }
+    let time_unit = time_unit.unwrap_or(if out[0].scalar.is_float() { TimeUnit::S } else { TimeUnit::Us });
+    Ok(NpyLayout { data_offset: start + len, rows, row_size, fields: out, time_unit })
+}
+
+/// Convert whole rows in `data` (rows `first_row..`) to events; the error names the first bad row.
+fn decode_rows(layout: &NpyLayout, data: &[u8], first_row: u64, path: &str, out: &mut Events) -> Result<()> {
+    const CHUNK_ROWS: usize = 1 << 16;
+    let rs = layout.row_size;
+    let n = data.len() / rs;
+    let scale = 10f64.powi(match layout.time_unit {
+        TimeUnit::S => 6,
+        TimeUnit::Ms => 3,
+        TimeUnit::Us => 0,
+        TimeUnit::Ns => -3,
+    });
+    let [ft, fx, fy, fp] = layout.fields;
+    let conv = |row: &[u8]| -> std::result::Result<(i64, u16, u16, i8), String> {
+        let t = match ft.scalar.read(&row[ft.offset..], ft.big_endian) {
+            Num::F(v) if !v.is_finite() => return Err(format!("time {v} is not finite")),
+            Num::F(v) => (v * scale).round() as i64,
+            Num::I(v) if scale >= 1.0 => v.saturating_mul(scale as i64),
+            Num::I(v) => (v as f64 * scale).round() as i64,
+        };
+        let coord = |f: Field, what: &str| -> std::result::Result<u16, String> {
+            match f.scalar.read(&row[f.offset..], f.big_endian) {
+                Num::I(v) => u16::try_from(v).map_err(|_| format!("{what} = {v} outside 0..=65535")),
+                Num::F(v) if v.fract() == 0.0 && (0.0..=65535.0).contains(&v) => Ok(v as u16),
+                Num::F(v) => Err(format!("{what} = {v} is not a pixel coordinate")),
+            }
+        };
+        let p = match fp.scalar.read(&row[fp.offset..], fp.big_endian) {
+            Num::I(1) => 1,
+            Num::I(0 | -1) => -1,
+            Num::F(1.0) => 1,
+            Num::F(v) if v == 0.0 || v == -1.0 => -1,
+            Num::I(v) => return Err(format!("polarity {v} is not one of 0/1, -1/+1")),
+            Num::F(v) => return Err(format!("polarity {v} is not one of 0/1, -1/+1")),
+        };
+        Ok((t, coord(fx, "x")?, coord(fy, "y")?, p))
+    };
+    let parts: Vec<std::result::Result<Events, (usize, String)>> = (0..n.div_ceil(CHUNK_ROWS))
+        .into_par_iter()
+        .map(|c| {
+            let range = c * CHUNK_ROWS..((c + 1) * CHUNK_ROWS).min(n);
+            let mut ev = Events::with_capacity(range.len(), 0, 0);
+            for i in range {
+                let (t, x, y, p) = conv(&data[i * rs..(i + 1) * rs]).map_err(|m| (i, m))?;
+                ev.push(t, x, y, p);
+            }
+            Ok(ev)
+        })
+        .collect();
+    for part in parts {
+        match part {
+            Ok(ev) => out.extend(&ev),
+            Err((i, msg)) => {
+                let row = first_row + i as u64;
+                let off = layout.data_offset as u64 + row * rs as u64;
+                return Err(Error::format(path, format!("row {row} (byte offset {off})"), msg));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Streaming NPY decoder over the bytes after the header.
+pub struct NpyDecoder {
+    path: String,
+    layout: NpyLayout,
+    rows_done: u64,
+}
+
+impl NpyDecoder {
+    pub fn new(path: &str, layout: NpyLayout) -> Self {
+        NpyDecoder { path: path.to_owned(), layout, rows_done: 0 }
+    }
+
+    pub fn layout(&self) -> &NpyLayout {
+        &self.layout
+    }
+}
+
+impl Decoder for NpyDecoder {
+    fn decode(&mut self, data: &[u8], offset: u64, out: &mut Events) -> Result<usize> {
+        let left = self.layout.rows - self.rows_done;
+        let rows = ((data.len() / self.layout.row_size) as u64).min(left);
+        let used = rows as usize * self.layout.row_size;
+        if rows == left && data.len() > used {
+            return Err(Error::format(
+                &self.path,
+                format!("byte offset {}", offset + used as u64),
+                format!("data continues after the {} rows the header declares", self.layout.rows),
+            ));
+        }
+        decode_rows(&self.layout, &data[..used], self.rows_done, &self.path, out)?;
+        self.rows_done += rows;
+        Ok(used)
+    }
+
+    fn finish(&mut self, tail: &[u8], offset: u64, _out: &mut Events) -> Result<()> {
+        if self.rows_done < self.layout.rows || !tail.is_empty() {
+            return Err(Error::format(
+                &self.path,
+                format!("byte offset {}", offset + tail.len() as u64),
+                format!(
+                    "truncated: file ends inside row {} of the {} rows the header declares",
+                    self.rows_done, self.layout.rows
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// How [`encode_npy`] lays events out.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NpyStyle {
+    /// Structured `(N,)` with fields t `<i8` (µs), x `<u2`, y `<u2`, p `|i1` — lossless.
+    Structured,
+    /// IncEventGS `(N, 4)` `<f8` columns x, y, t (s), p (±1).
+    Xytp,
+}
+
+/// Header length used by [`npy_header`]: fixed so a streaming writer can rewrite the row count in place.
+pub const HEADER_LEN: usize = 192;
+
+/// A v1.0 NPY header for `rows` events, always [`HEADER_LEN`] bytes long.
+pub fn npy_header(rows: u64, style: NpyStyle) -> Vec<u8> {
+    let dict = match style {
+        NpyStyle::Structured => format!(
+            "{{'descr': [('t', '<i8'), ('x', '<u2'), ('y', '<u2'), ('p', '|i1')], 'fortran_order': False, 'shape': ({rows},), }}"
+        ),
+        NpyStyle::Xytp => format!("{{'descr': '<f8', 'fortran_order': False, 'shape': ({rows}, 4), }}"),
+    };
+    let mut h = Vec::with_capacity(HEADER_LEN);
+    h.extend_from_slice(MAGIC);
+    h.extend_from_slice(&[1, 0]);
+    h.extend_from_slice(&((HEADER_LEN - 10) as u16).to_le_bytes());
+    h.extend_from_slice(dict.as_bytes());
+    h.resize(HEADER_LEN - 1, b' ');
+    h.push(b'\n');
+    h
+}
+
+/// The rows of `ev` in `style` (no header), encoded in parallel.
+pub fn encode_npy_rows(ev: EventsView<'_>, style: NpyStyle) -> Vec<u8> {
+    let rs = match style {
+        NpyStyle::Structured => 13,
+        NpyStyle::Xytp => 32,
+    };
+    let mut out = vec![0u8; ev.len() * rs];
+    out.par_chunks_mut(rs << 14).enumerate().for_each(|(c, buf)| {
+        for (k, row) in buf.chunks_exact_mut(rs).enumerate() {
+            let i = (c << 14) + k;
+            match style {
+                NpyStyle::Structured => {
+                    row[..8].copy_from_slice(&ev.t[i].to_le_bytes());
+                    row[8..10].copy_from_slice(&ev.x[i].to_le_bytes());
+                    row[10..12].copy_from_slice(&ev.y[i].to_le_bytes());
+                    row[12] = ev.p[i] as u8;
+                }
+                NpyStyle::Xytp => {
+                    row[..8].copy_from_slice(&f64::from(ev.x[i]).to_le_bytes());
+                    row[8..16].copy_from_slice(&f64::from(ev.y[i]).to_le_bytes());
+                    row[16..24].copy_from_slice(&(ev.t[i] as f64 * 1e-6).to_le_bytes());
+                    row[24..].copy_from_slice(&f64::from(ev.p[i]).to_le_bytes());
+                }
+            }
+        }
+    });
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample() -> Events {
+        let mut ev = Events::with_capacity(3, 0, 0);
+        ev.push(0, 1, 2, 1);
+        ev.push(1_500_000, 639, 479, -1);
+        ev.push(2_000_001, 7, 8, 1);
+        ev
+    }
+
+    fn decode_all(bytes: &[u8], columns: Option<&str>) -> Result<Events> {
+        let layout = parse_npy_header(bytes, "a.npy", columns, None)?;
+        let off = layout.data_offset;
+        let mut dec = NpyDecoder::new("a.npy", layout);
+        let mut out = Events::default();
+        let used = dec.decode(&bytes[off..], off as u64, &mut out)?;
+        dec.finish(&bytes[off + used..], (off + used) as u64, &mut out)?;
+        Ok(out)
+    }
+
+    fn file(style: NpyStyle, ev: &Events) -> Vec<u8> {
+        let mut b = npy_header(ev.len() as u64, style);
+        b.extend(encode_npy_rows(ev.view(), style));
+        b
+    }
+
+    #[test]
+    fn both_styles_round_trip() {
+        let ev = sample();
+        assert_eq!(decode_all(&file(NpyStyle::Structured, &ev), None).unwrap(), ev);
+        assert_eq!(decode_all(&file(NpyStyle::Xytp, &ev), None).unwrap(), ev);
+        assert_eq!(npy_header(u64::MAX, NpyStyle::Structured).len(), HEADER_LEN);
+    }
+
+    #[test]
+    fn spec_header_v2_big_endian_float32_and_named_fields() {
+        // Built by hand per the NPY spec: version 2.0, u32 header length, big-endian f4, shape (1, 4).
+        let dict = b"{'descr': '>f4', 'fortran_order': False, 'shape': (1, 4), }\n";
+        let mut b = MAGIC.to_vec();
+        b.extend_from_slice(&[2, 0]);
+        b.extend_from_slice(&(dict.len() as u32).to_le_bytes());
+        b.extend_from_slice(dict);
+        for v in [3.0f32, 4.0, 0.25, 0.0] {
+            b.extend_from_slice(&v.to_be_bytes());
+        }
+        let ev = decode_all(&b, None).unwrap();
+        assert_eq!((ev.t[0], ev.x[0], ev.y[0], ev.p[0]), (250_000, 3, 4, -1));
+        // ELOPE-style structured: x, y, p bool, t µs, plus an unknown field to skip.
+        let dict = b"{'descr': [('x', '<i2'), ('q', '<u4'), ('y', '<i2'), ('p', '?'), ('t', '<i8')], 'fortran_order': False, 'shape': (1,)}";
+        let mut b = MAGIC.to_vec();
+        b.extend_from_slice(&[1, 0]);
+        b.extend_from_slice(&(dict.len() as u16).to_le_bytes());
+        b.extend_from_slice(dict);
+        b.extend_from_slice(&5i16.to_le_bytes());
+        b.extend_from_slice(&[9; 4]);
+        b.extend_from_slice(&6i16.to_le_bytes());
+        b.push(1);
+        b.extend_from_slice(&77i64.to_le_bytes());
+        let ev = decode_all(&b, None).unwrap();
+        assert_eq!((ev.t[0], ev.x[0], ev.y[0], ev.p[0]), (77, 5, 6, 1));
+    }
+
+    #[test]
+    fn errors_name_row_and_offset() {
+        let mut ev = sample();
+        let good = file(NpyStyle::Xytp, &ev);
+        let e = decode_all(&good[..good.len() - 3], None).unwrap_err().to_string();
+        assert!(e.contains("a.npy: byte offset") && e.contains("truncated"), "{e}");
+        let mut bad = good.clone();
+        let nan_at = HEADER_LEN + 32 + 16;
+        bad[nan_at..nan_at + 8].copy_from_slice(&f64::NAN.to_le_bytes());
+        let e = decode_all(&bad, None).unwrap_err().to_string();
+        assert!(
+            e.contains(&format!("row 1 (byte offset {})", HEADER_LEN + 32)) && e.contains("not finite"),
+            "{e}"
+        );
+        ev.p[2] = 3;
+        let e = decode_all(&file(NpyStyle::Structured, &ev), None).unwrap_err().to_string();
+        assert!(e.contains("row 2") && e.contains("polarity 3"), "{e}");
+        let e = decode_all(b"\x93NUMPY\x01\x00\xff\x00{'descr'", None).unwrap_err().to_string();
+        assert!(e.contains("byte offset 8") && e.contains("truncated"), "{e}");
+        let e = decode_all(&good, Some("xyt")).unwrap_err().to_string();
+        assert!(e.contains("4 columns"), "{e}");
+    }
+}

@@ -1,0 +1,431 @@
+//! Streaming event reader: open any Rust-decoded format, then pull batches in bounded memory.
+//!
+//! The file is read in blocks; the format's [`Decoder`] consumes what it can and the unconsumed tail
+//! is carried into the next block. Sortedness and sensor bounds are checked here for every format
+//! (text files check them line by line instead, so their errors name the line).
+
+use std::fs::File;
+use std::io::Read;
+
+use crate::error::{Error, Result};
+use crate::events::aedat4::{parse_aedat4_header, Aedat4Decoder};
+use crate::events::detect::{detect, read_head, Format};
+use crate::events::evt2::Evt2Decoder;
+use crate::events::evt3::Evt3Decoder;
+use crate::events::npy::{parse_npy_header, NpyDecoder};
+use crate::events::raw_header::{parse_raw_header, DecodeStats};
+use crate::events::text::{TextDecoder, TextLayout, TextOptions};
+use crate::events::{Decoder, Events, EventsView};
+
+/// Bytes read per block.
+const BLOCK: usize = 16 << 20;
+
+/// Reader options. `text.width/height` give the sensor size for formats that do not store one
+/// (they override a header's); `text.columns` and `text.time_unit` also apply to NPY.
+#[derive(Debug, Clone, Default)]
+pub struct ReadOptions {
+    pub text: TextOptions,
+    /// Drop (and count) events outside the sensor instead of failing.
+    pub drop_outside: bool,
+    /// EVT 2.0/3.0: make times relative to the first TIME_HIGH (Metavision's default; evgs's is off).
+    pub time_shift: bool,
+}
+
+/// Per-batch checks shared by every reader (Rust-decoded here, Python-decoded through the binding):
+/// coordinates inside the sensor (or dropped and counted), and optionally non-decreasing time.
+#[derive(Debug, Clone, Default)]
+pub struct BatchCheck {
+    /// Names the data in errors.
+    pub path: String,
+    /// Sensor size; 0 = unknown (no bounds check).
+    pub width: u32,
+    pub height: u32,
+    pub drop_outside: bool,
+    pub require_sorted: bool,
+    /// Events examined so far (kept and dropped): the file position of the next one.
+    pub seen: u64,
+    /// Events dropped as outside the sensor.
+    pub dropped: u64,
+    last_t: Option<i64>,
+}
+
+impl BatchCheck {
+    pub fn new(path: &str, width: u32, height: u32, drop_outside: bool, require_sorted: bool) -> Self {
+        BatchCheck {
+            path: path.to_owned(),
+            width,
+            height,
+            drop_outside,
+            require_sorted,
+            ..Default::default()
+        }
+    }
+
+    /// Check the next batch. Returns the indices to keep when some events were dropped.
+    pub fn check(&mut self, v: EventsView<'_>) -> Result<Option<Vec<usize>>> {
+        let (w, h) = (self.width, self.height);
+        let outside = |i: usize| (w > 0 && u32::from(v.x[i]) >= w) || (h > 0 && u32::from(v.y[i]) >= h);
+        let first_out = if w > 0 || h > 0 { (0..v.len()).find(|&i| outside(i)) } else { None };
+        let keep = match first_out {
+            None => None,
+            Some(i) if !self.drop_outside => {
+                return Err(Error::format(
+                    &self.path,
+                    format!("event {}", self.seen + i as u64),
+                    format!(
+                        "({}, {}) outside the {w}x{h} sensor (drop_outside drops such events)",
+                        v.x[i], v.y[i]
+                    ),
+                ))
+            }
+            Some(_) => Some((0..v.len()).filter(|&i| !outside(i)).collect::<Vec<_>>()),
+        };
+        if self.require_sorted {
+            let mut prev = self.last_t;
+            let mut bad = None;
+            let mut visit = |i: usize| {
+                if bad.is_none() && prev.is_some_and(|q| v.t[i] < q) {
+                    bad = Some((i, prev.unwrap_or(0)));
+                }
+                prev = Some(v.t[i]);
+            };
+            match &keep {
+                Some(k) => k.iter().for_each(|&i| visit(i)),
+                None => (0..v.len()).for_each(visit),
+            }
+            if let Some((i, q)) = bad {
+                return Err(Error::format(
+                    &self.path,
+                    format!("event {}", self.seen + i as u64),
+                    format!("time goes backwards ({} < previous {q})", v.t[i]),
+                ));
+            }
+        }
+        let last = match &keep {
+            Some(k) => k.last().map(|&i| v.t[i]),
+            None => v.t.last().copied(),
+        };
+        self.last_t = last.or(self.last_t);
+        self.seen += v.len() as u64;
+        self.dropped += keep.as_ref().map_or(0, |k| (v.len() - k.len()) as u64);
+        Ok(keep)
+    }
+}
+
+enum AnyDecoder {
+    Text(TextDecoder),
+    Npy(NpyDecoder),
+    Evt2(Evt2Decoder),
+    Evt3(Evt3Decoder),
+    Aedat4(Aedat4Decoder),
+}
+
+impl AnyDecoder {
+    fn get(&mut self) -> &mut dyn Decoder {
+        match self {
+            AnyDecoder::Text(d) => d,
+            AnyDecoder::Npy(d) => d,
+            AnyDecoder::Evt2(d) => d,
+            AnyDecoder::Evt3(d) => d,
+            AnyDecoder::Aedat4(d) => d,
+        }
+    }
+}
+
+/// An open event file, decoded batch by batch.
+pub struct EventReader {
+    path: String,
+    file: File,
+    format: Format,
+    decoder: AnyDecoder,
+    /// Unconsumed bytes; `buf[0]` is at absolute file offset `buf_offset`.
+    buf: Vec<u8>,
+    buf_offset: u64,
+    file_size: u64,
+    finished: bool,
+    pending: Events,
+    width: u32,
+    height: u32,
+    check: BatchCheck,
+}
+
+impl EventReader {
+    /// Open `path`, detect its format from content unless `format` is given, parse its header.
+    pub fn open(path: &str, format: Option<Format>, opts: &ReadOptions) -> Result<Self> {
+        let mut file = File::open(path).map_err(|e| Error::io(path, e))?;
+        let file_size = file.metadata().map_err(|e| Error::io(path, e))?.len();
+        let mut head = read_head(&mut file, path)?;
+        let format = match format {
+            Some(f) => f,
+            None => detect(&head, path)?,
+        };
+        let t = &opts.text;
+        let (decoder, data_offset, width, height) = match format {
+            Format::Text => {
+                // With drop_outside the reader filters; otherwise the text decoder names the bad line.
+                let mut text = t.clone();
+                if opts.drop_outside {
+                    (text.width, text.height) = (0, 0);
+                }
+                (AnyDecoder::Text(TextDecoder::new(&head, path, &text)?), 0, t.width, t.height)
+            }
+            Format::Npy => {
+                let layout = parse_npy_header(&head, path, t.columns.as_deref(), t.time_unit)?;
+                let off = layout.data_offset;
+                (AnyDecoder::Npy(NpyDecoder::new(path, layout)), off, t.width, t.height)
+            }
+            Format::Evt2 | Format::Evt3 => {
+                let h = parse_raw_header(&head, path)?;
+                let (w, hh) = if t.width > 0 { (t.width, t.height) } else { (h.width, h.height) };
+                let d = if format == Format::Evt2 {
+                    AnyDecoder::Evt2(Evt2Decoder::new(path, w, hh, opts.time_shift))
+                } else {
+                    AnyDecoder::Evt3(Evt3Decoder::new(path, w, hh, opts.time_shift))
+                };
+                (d, h.data_offset, w, hh)
+            }
+            Format::Aedat4 => {
+                let h = parse_aedat4_header(&head, path)?;
+                let (w, hh) = if t.width > 0 { (t.width, t.height) } else { (h.width, h.height) };
+                (AnyDecoder::Aedat4(Aedat4Decoder::new(path, &h)), h.data_offset, w, hh)
+            }
+            Format::Npz | Format::Hdf5 | Format::Parquet => {
+                return Err(Error::Invalid(format!(
+                    "{path}: {} files are read by the Python layer (evgs.events.io)",
+                    format.name()
+                )))
+            }
+        };
+        let start = data_offset.min(head.len());
+        head.drain(..start);
+        Ok(EventReader {
+            path: path.to_owned(),
+            file,
+            format,
+            decoder,
+            buf: head,
+            buf_offset: start as u64,
+            file_size,
+            finished: false,
+            pending: Events::with_capacity(0, width, height),
+            width,
+            height,
+            // Text files check bounds and order line by line (unless dropping), naming the line.
+            check: if format == Format::Text {
+                let (w, h) = if opts.drop_outside { (width, height) } else { (0, 0) };
+                BatchCheck::new(path, w, h, opts.drop_outside, false)
+            } else {
+                BatchCheck::new(path, width, height, opts.drop_outside, t.require_sorted)
+            },
+        })
+    }
+
+    pub fn format(&self) -> Format {
+        self.format
+    }
+
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+
+    pub fn file_size(&self) -> u64 {
+        self.file_size
+    }
+
+    /// File bytes decoded so far (for progress bars).
+    pub fn bytes_done(&self) -> u64 {
+        self.buf_offset
+    }
+
+    /// Events dropped because they were outside the sensor (only with `drop_outside`).
+    pub fn dropped_outside(&self) -> u64 {
+        self.check.dropped
+    }
+
+    /// The sniffed layout of a text file.
+    pub fn text_layout(&self) -> Option<&TextLayout> {
+        match &self.decoder {
+            AnyDecoder::Text(d) => Some(d.layout()),
+            _ => None,
+        }
+    }
+
+    /// What the camera decoder skipped (triggers, words before the first time base, ...).
+    pub fn decode_stats(&self) -> Option<DecodeStats> {
+        match &self.decoder {
+            AnyDecoder::Evt2(d) => Some(d.stats()),
+            AnyDecoder::Evt3(d) => Some(d.stats()),
+            AnyDecoder::Aedat4(d) => Some(d.stats()),
+            AnyDecoder::Text(_) | AnyDecoder::Npy(_) => None,
+        }
+    }
+
+    /// Read one more block and decode it into `pending` (or finish at end of file).
+    fn fill(&mut self) -> Result<()> {
+        let have = self.buf.len();
+        let want = BLOCK.max(have);
+        self.buf.resize(have + want, 0);
+        let mut got = 0;
+        while got < want {
+            match self.file.read(&mut self.buf[have + got..]) {
+                Ok(0) => break,
+                Ok(n) => got += n,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(Error::io(&self.path, e)),
+            }
+        }
+        self.buf.truncate(have + got);
+        let before = self.pending.len();
+        let used = self.decoder.get().decode(&self.buf, self.buf_offset, &mut self.pending)?;
+        self.buf.drain(..used);
+        self.buf_offset += used as u64;
+        if got == 0 {
+            self.decoder.get().finish(&self.buf, self.buf_offset, &mut self.pending)?;
+            self.buf_offset += self.buf.len() as u64;
+            self.buf.clear();
+            self.finished = true;
+        }
+        self.check_new(before)
+    }
+
+    /// Sortedness and sensor bounds of the events appended since `from`.
+    fn check_new(&mut self, from: usize) -> Result<()> {
+        let p = &mut self.pending;
+        let v = EventsView {
+            t: &p.t[from..],
+            x: &p.x[from..],
+            y: &p.y[from..],
+            p: &p.p[from..],
+            width: 0,
+            height: 0,
+        };
+        if let Some(keep) = self.check.check(v)? {
+            for (k, &j) in keep.iter().enumerate() {
+                let j = from + j;
+                (p.t[from + k], p.x[from + k], p.y[from + k], p.p[from + k]) =
+                    (p.t[j], p.x[j], p.y[j], p.p[j]);
+            }
+            let n = from + keep.len();
+            p.t.truncate(n);
+            p.x.truncate(n);
+            p.y.truncate(n);
+            p.p.truncate(n);
+        }
+        Ok(())
+    }
+
+    /// The next batch of at most `max_events` events, or `None` at the end of the file.
+    pub fn next_batch(&mut self, max_events: usize) -> Result<Option<Events>> {
+        let max = max_events.max(1);
+        while self.pending.len() < max && !self.finished {
+            self.fill()?;
+        }
+        if self.pending.is_empty() {
+            return Ok(None);
+        }
+        let batch = if self.pending.len() <= max {
+            std::mem::replace(&mut self.pending, Events::with_capacity(0, self.width, self.height))
+        } else {
+            let p = &mut self.pending;
+            let rest = Events {
+                t: p.t.split_off(max),
+                x: p.x.split_off(max),
+                y: p.y.split_off(max),
+                p: p.p.split_off(max),
+                width: self.width,
+                height: self.height,
+            };
+            std::mem::replace(p, rest)
+        };
+        Ok(Some(batch))
+    }
+
+    /// Every remaining event.
+    pub fn read_all(&mut self) -> Result<Events> {
+        while !self.finished {
+            self.fill()?;
+        }
+        let all = std::mem::take(&mut self.pending);
+        Ok(Events { width: self.width, height: self.height, ..all })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::events::npy::{encode_npy_rows, npy_header, NpyStyle};
+
+    fn tmp(name: &str, bytes: &[u8]) -> String {
+        let dir = std::env::temp_dir().join(format!("evgs-reader-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join(name);
+        std::fs::write(&p, bytes).unwrap();
+        p.to_string_lossy().into_owned()
+    }
+
+    fn sample(n: usize) -> Events {
+        let mut ev = Events::with_capacity(n, 64, 48);
+        for i in 0..n {
+            ev.push(i as i64 * 3, (i % 64) as u16, (i % 48) as u16, if i % 3 == 0 { 1 } else { -1 });
+        }
+        ev
+    }
+
+    #[test]
+    fn batches_equal_whole_read_for_every_rust_format() {
+        let ev = sample(100_003);
+        let mut npy = npy_header(ev.len() as u64, NpyStyle::Structured);
+        npy.extend(encode_npy_rows(ev.view(), NpyStyle::Structured));
+        let files = [
+            (tmp("a.npy", &npy), Format::Npy),
+            (tmp("a.raw", &crate::events::evt2::encode_evt2(ev.view())), Format::Evt2),
+            (tmp("b.raw", &crate::events::evt3::encode_evt3(ev.view())), Format::Evt3),
+        ];
+        let opts = ReadOptions {
+            text: TextOptions { width: 64, height: 48, ..Default::default() },
+            ..Default::default()
+        };
+        for (path, fmt) in files {
+            let mut r = EventReader::open(&path, None, &opts).unwrap();
+            assert_eq!(r.format(), fmt);
+            let mut got = Events::with_capacity(0, 64, 48);
+            while let Some(b) = r.next_batch(7777).unwrap() {
+                assert!(b.len() <= 7777);
+                got.extend(&b);
+            }
+            assert_eq!(got, ev, "{fmt:?}");
+            assert_eq!(EventReader::open(&path, None, &opts).unwrap().read_all().unwrap(), ev);
+        }
+    }
+
+    #[test]
+    fn outside_and_unsorted_are_errors_or_counted() {
+        let mut ev = sample(10);
+        ev.x[4] = 70;
+        let mut npy = npy_header(10, NpyStyle::Structured);
+        npy.extend(encode_npy_rows(ev.view(), NpyStyle::Structured));
+        let path = tmp("o.npy", &npy);
+        let mut opts = ReadOptions {
+            text: TextOptions { width: 64, height: 48, ..Default::default() },
+            ..Default::default()
+        };
+        let e = EventReader::open(&path, None, &opts).unwrap().read_all().unwrap_err().to_string();
+        assert!(e.contains("event 4: (70, 4) outside the 64x48 sensor"), "{e}");
+        opts.drop_outside = true;
+        let mut r = EventReader::open(&path, None, &opts).unwrap();
+        assert_eq!(r.read_all().unwrap().len(), 9);
+        assert_eq!(r.dropped_outside(), 1);
+        ev.x[4] = 0;
+        ev.t[6] = 0;
+        let mut npy = npy_header(10, NpyStyle::Structured);
+        npy.extend(encode_npy_rows(ev.view(), NpyStyle::Structured));
+        let path = tmp("u.npy", &npy);
+        opts.text.require_sorted = true;
+        let e = EventReader::open(&path, None, &opts).unwrap().read_all().unwrap_err().to_string();
+        assert!(e.contains("event 6: time goes backwards"), "{e}");
+    }
+}
