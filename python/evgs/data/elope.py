@@ -31,11 +31,10 @@ import numpy as np
 import polars as pl
 from rich.progress import Progress
 
-from evgs.data.importers import Imported, check_frames, finish_events, float_list
+from evgs.data.importers import Imported, check_frames, finish_events, float_list, read_events_tracked
 from evgs.data.poses import DIRECTIONS, Direction, check_rotations, euler_to_rotmat
 from evgs.data.rawtext import seconds_to_us
 from evgs.data.sequence import Camera
-from evgs.events.io import read_events
 from evgs.geometry import make_pose
 
 DESCRIPTION = "ELOPE sequence (.npz with events, timestamps, traj, range_meter)"
@@ -78,9 +77,8 @@ def load(
         raise FileNotFoundError(f"{path}: file not found (expected an ELOPE .npz)")
     camera = Camera(SIZE, SIZE, focal, focal, principal[0], principal[1])
     notes: list[str] = []
-    task = progress.add_task(f"reading {path.name}", total=None)
-    events = finish_events(read_events(path, "npz"), camera, f"{path}: events", notes)
-    progress.update(task, total=1, completed=1)
+    raw = read_events_tracked(path, "npz", progress, notes, width=SIZE, height=SIZE)
+    events = finish_events(raw, camera, f"{path}: events", notes)
     with np.load(path, allow_pickle=False) as npz:
         arrays = {k: npz[k] for k in ("timestamps", "traj", "range_meter") if k in npz.files}
     if "timestamps" not in arrays:

@@ -19,6 +19,7 @@ from rich.progress import Progress
 
 from evgs.data.sequence import Camera, Sequence, write_sequence
 from evgs.events.arrays import EventArray
+from evgs.events.io import open_events
 
 ADAPTERS = {
     "seenic": "evgs.data.seenic",
@@ -66,6 +67,24 @@ def finish_events(ev: EventArray, camera: Camera, source: str, notes: list[str])
         ev = EventArray(ev.t[order], ev.x[order], ev.y[order], ev.p[order], ev.width, ev.height)
         notes.append(f"{source}: {unsorted} out-of-order timestamps; events sorted by time (none dropped)")
     return ev
+
+
+def read_events_tracked(path: Path, fmt: str, progress: Progress, notes: list[str], **options) -> EventArray:
+    """Read a whole event file in batches, advancing a progress bar by file position; anything the
+    reader skipped goes into ``notes``."""
+    source = open_events(path, fmt, **options)
+    task = progress.add_task(f"reading {path.name}", total=1.0)
+    parts = []
+    for batch in source.batches():
+        parts.append(batch)
+        progress.update(task, completed=source.progress)
+    progress.update(task, completed=1.0)
+    skipped = {k: v for k, v in source.skipped.items() if v}
+    if skipped:
+        notes.append(f"{path}: reader skipped {', '.join(f'{v} {k}' for k, v in skipped.items())}")
+    if not parts:
+        raise ValueError(f"{path}: no events")
+    return EventArray(*(np.concatenate([getattr(b, c) for b in parts]) for c in "txyp"))
 
 
 def check_frames(frames_us: np.ndarray, source: str) -> np.ndarray:

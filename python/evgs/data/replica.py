@@ -17,11 +17,18 @@ from pathlib import Path
 
 from rich.progress import Progress
 
-from evgs.data.importers import Imported, check_frames, finish_events, float_list, image_size, parse_size
+from evgs.data.importers import (
+    Imported,
+    check_frames,
+    finish_events,
+    float_list,
+    image_size,
+    parse_size,
+    read_events_tracked,
+)
 from evgs.data.poses import AXES, Axes, rows_to_pose, to_opencv_axes
 from evgs.data.rawtext import read_rows, seconds_to_us
 from evgs.data.sequence import Camera
-from evgs.events.io import read_events
 
 DESCRIPTION = "IncEventGS/Replica-event folder (poses_ts.txt, traj.txt, event_threshold_*/, images/)"
 RAW_PATH_HELP = "a folder holding poses_ts.txt, traj.txt and event_threshold_<C>/gray_events_data.npy"
@@ -75,9 +82,8 @@ def load(
 
     npy = _events_file(path, threshold)
     notes: list[str] = []
-    task = progress.add_task(f"reading {npy.parent.name}/{npy.name}", total=None)
-    events = finish_events(read_events(npy, "npy"), camera, str(npy), notes)
-    progress.update(task, total=1, completed=1)
+    raw = read_events_tracked(npy, "npy", progress, notes, width=camera.width, height=camera.height)
+    events = finish_events(raw, camera, str(npy), notes)
     meta = {
         "source": "replica",
         "raw_path": str(path.resolve()),

@@ -16,11 +16,17 @@ from pathlib import Path
 import numpy as np
 from rich.progress import Progress
 
-from evgs.data.importers import Imported, check_frames, finish_events, image_size, parse_size
+from evgs.data.importers import (
+    Imported,
+    check_frames,
+    finish_events,
+    image_size,
+    parse_size,
+    read_events_tracked,
+)
 from evgs.data.rawtext import read_rows, seconds_to_us
 from evgs.data.sequence import Camera
 from evgs.data.tum import read_tum
-from evgs.events.io import read_events
 
 DESCRIPTION = "ESIM/RPG folder (events.txt, groundtruth.txt, calib.txt, images.txt + images/)"
 RAW_PATH_HELP = "a folder holding events.txt, groundtruth.txt and calib.txt"
@@ -56,10 +62,11 @@ def load(path: Path, progress: Progress, *, size: tuple[int, int] | None = None)
     ev_path = path / "events.txt"
     if not ev_path.is_file():
         raise FileNotFoundError(f"{ev_path}: not found (expected t[s] x y p per line)")
-    task = progress.add_task(f"reading {ev_path.name}", total=None)
-    raw = read_events(ev_path, "txt", columns="txyp", time_unit="s", width=camera.width, height=camera.height)
+    raw = read_events_tracked(
+        ev_path, "txt", progress, notes, columns="txyp", time_unit="s", width=camera.width,
+        height=camera.height,
+    )  # fmt: skip
     events = finish_events(raw, camera, str(ev_path), notes)
-    progress.update(task, total=1, completed=1)
     meta = {"source": "rpg", "raw_path": str(path.resolve())}
     return Imported(
         path.resolve().name, camera, events, frames, poses_gt=(t_gt_us, T_wc),

@@ -25,11 +25,10 @@ from pathlib import Path
 
 from rich.progress import Progress
 
-from evgs.data.importers import Imported, check_frames, finish_events
+from evgs.data.importers import Imported, check_frames, finish_events, read_events_tracked
 from evgs.data.poses import DIRECTIONS, Direction, rodrigues_to_rotmat, to_c2w
 from evgs.data.rawtext import read_rows
 from evgs.data.sequence import Camera
-from evgs.events.io import read_events
 from evgs.geometry import make_pose
 
 DESCRIPTION = "SEENIC sequence folder (events.csv + cam-poses.csv)"
@@ -59,13 +58,12 @@ def load(path: Path, progress: Progress, *, pose_direction: Direction = "c2w") -
             raise FileNotFoundError(
                 f"{p}: not found; a SEENIC sequence folder holds events.csv and cam-poses.csv ({what})"
             )
-    task = progress.add_task(f"reading {events_path.name}", total=None)
     notes: list[str] = []
-    raw = read_events(
-        events_path, "csv", columns="txyp", time_unit="us", width=CAMERA.width, height=CAMERA.height
-    )
+    raw = read_events_tracked(
+        events_path, "csv", progress, notes, columns="txyp", time_unit="us", width=CAMERA.width,
+        height=CAMERA.height,
+    )  # fmt: skip
     events = finish_events(raw, CAMERA, str(events_path), notes)
-    progress.update(task, total=1, completed=1)
 
     rows, lines = read_rows(poses_path, 7, "t[µs] rx ry rz x y z")
     t_us = rows[:, 0].round().astype("int64")
