@@ -85,3 +85,23 @@ def test_seenic_missing_and_malformed(tmp_path, capsys):
     assert run_import("seenic", raw, "--out", tmp_path / "out") == 2
     assert "cam-poses.csv: line 3: expected 7 values" in capsys.readouterr().err
     assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".out*"))
+
+
+def test_seenic_unsorted_and_outside_events(tmp_path, capsys):
+    raw = tmp_path / "seq"
+    ev, _, _ = write_seenic(raw, np.random.default_rng(14), header=False, n_events=200)
+    lines = (raw / "events.csv").read_text().splitlines()
+    lines[10], lines[11] = lines[11], lines[10]
+    lines[50], lines[60] = lines[60], lines[50]
+    (raw / "events.csv").write_text("\n".join(lines) + "\n")
+    assert run_import("seenic", raw, "--out", tmp_path / "out") == 0
+    assert "events sorted by time (none dropped)" in capsys.readouterr().err
+    got = Sequence.load(tmp_path / "out").events()
+    assert len(got) == 200
+    np.testing.assert_array_equal(got.t, ev["t"])
+    lines[20] = "1000100,640,5,1"
+    (raw / "events.csv").write_text("\n".join(lines) + "\n")
+    assert run_import("seenic", raw, "--out", tmp_path / "out2") == 2
+    err = capsys.readouterr().err
+    assert "events.csv" in err and "line 21" in err
+    assert not (tmp_path / "out2").exists()

@@ -1,8 +1,9 @@
 """What every data-set adapter shares: the in-memory result of reading a raw download, frame-range
 selection, and the atomic write of the canonical layout (``evgs.data.sequence``) plus extra tables.
 
-An adapter module has ``DESCRIPTION``, ``add_arguments(parser)`` and
-``load(path, args, progress) -> Imported``; ``ADAPTERS`` maps the ``evgs import`` name to it.
+An adapter module has ``DESCRIPTION``, ``RAW_PATH_HELP``, ``add_arguments(parser)`` and
+``load(path, progress, **options) -> Imported`` (the options are its arguments' ``dest`` names);
+``ADAPTERS`` maps the ``evgs import`` name to it.
 """
 
 from __future__ import annotations
