@@ -161,40 +161,6 @@ impl Scalar {
         };
         Ok((s, big && s.size() > 1))
     }
-
-    /// Read the element at `b[..size]` as f64 (floats) or exact integer (ints) via `Num`.
-    #[inline]
-    fn read(self, b: &[u8], big: bool) -> Num {
-        macro_rules! rd {
-            ($t:ty, $n:expr) => {{
-                let a: [u8; $n] = b[..$n].try_into().unwrap();
-                if big {
-                    <$t>::from_be_bytes(a)
-                } else {
-                    <$t>::from_le_bytes(a)
-                }
-            }};
-        }
-        match self {
-            Scalar::Bool => Num::I(i64::from(b[0] != 0)),
-            Scalar::I8 => Num::I(i64::from(b[0] as i8)),
-            Scalar::U8 => Num::I(i64::from(b[0])),
-            Scalar::I16 => Num::I(i64::from(rd!(i16, 2))),
-            Scalar::U16 => Num::I(i64::from(rd!(u16, 2))),
-            Scalar::I32 => Num::I(i64::from(rd!(i32, 4))),
-            Scalar::U32 => Num::I(i64::from(rd!(u32, 4))),
-            Scalar::I64 => Num::I(rd!(i64, 8)),
-            Scalar::U64 => Num::I(i64::try_from(rd!(u64, 8)).unwrap_or(i64::MAX)),
-            Scalar::F32 => Num::F(f64::from(rd!(f32, 4))),
-            Scalar::F64 => Num::F(rd!(f64, 8)),
-        }
-    }
-}
-
-#[derive(Debug, Clone, Copy)]
-enum Num {
-    I(i64),
-    F(f64),
 }
 
 /// Where one event column lives inside a row.
@@ -342,63 +308,127 @@ pub fn parse_npy_header(
     Ok(NpyLayout { data_offset: start + len, rows, row_size, fields: out, time_unit })
 }
 
-/// Convert whole rows in `data` (rows `first_row..`) to events; the error names the first bad row.
+type ColResult = std::result::Result<(), (usize, String)>;
+
+/// Convert column `f` of every row in `data` into `out` through `ci` (integer columns) or `cf` (float
+/// columns). One tight loop per element type, so the per-value work inlines and vectorises.
+#[inline]
+fn column<T, CI, CF>(data: &[u8], rs: usize, f: Field, out: &mut [T], ci: CI, cf: CF) -> ColResult
+where
+    CI: Fn(i64) -> std::result::Result<T, String>,
+    CF: Fn(f64) -> std::result::Result<T, String>,
+{
+    macro_rules! go {
+        ($t:ty, $n:expr, $to:expr, $conv:expr) => {{
+            for (i, (row, o)) in data.chunks_exact(rs).zip(out.iter_mut()).enumerate() {
+                let a: [u8; $n] = row[f.offset..f.offset + $n].try_into().unwrap();
+                let v = if f.big_endian { <$t>::from_be_bytes(a) } else { <$t>::from_le_bytes(a) };
+                *o = $conv($to(v)).map_err(|m| (i, m))?;
+            }
+        }};
+    }
+    match f.scalar {
+        Scalar::Bool => go!(u8, 1, |v: u8| i64::from(v != 0), ci),
+        Scalar::I8 => go!(i8, 1, i64::from, ci),
+        Scalar::U8 => go!(u8, 1, i64::from, ci),
+        Scalar::I16 => go!(i16, 2, i64::from, ci),
+        Scalar::U16 => go!(u16, 2, i64::from, ci),
+        Scalar::I32 => go!(i32, 4, i64::from, ci),
+        Scalar::U32 => go!(u32, 4, i64::from, ci),
+        Scalar::I64 => go!(i64, 8, |v: i64| v, ci),
+        Scalar::U64 => go!(u64, 8, |v: u64| i64::try_from(v).unwrap_or(i64::MAX), ci),
+        Scalar::F32 => go!(f32, 4, f64::from, cf),
+        Scalar::F64 => go!(f64, 8, |v: f64| v, cf),
+    }
+    Ok(())
+}
+
+fn coord_i(what: &'static str) -> impl Fn(i64) -> std::result::Result<u16, String> {
+    move |v| u16::try_from(v).map_err(|_| format!("{what} = {v} outside 0..=65535"))
+}
+
+fn coord_f(what: &'static str) -> impl Fn(f64) -> std::result::Result<u16, String> {
+    move |v| {
+        if v.fract() == 0.0 && (0.0..=65535.0).contains(&v) {
+            Ok(v as u16)
+        } else {
+            Err(format!("{what} = {v} is not a pixel coordinate"))
+        }
+    }
+}
+
+/// Convert whole rows in `data` (rows `first_row..`) to events appended to `out`, in parallel chunks
+/// written straight into the output columns; the error names the first bad row.
 fn decode_rows(layout: &NpyLayout, data: &[u8], first_row: u64, path: &str, out: &mut Events) -> Result<()> {
-    const CHUNK_ROWS: usize = 1 << 16;
+    const CH: usize = 1 << 15;
     let rs = layout.row_size;
     let n = data.len() / rs;
-    let scale = 10f64.powi(match layout.time_unit {
+    let unit = layout.time_unit;
+    let scale_f = 10f64.powi(match unit {
         TimeUnit::S => 6,
         TimeUnit::Ms => 3,
         TimeUnit::Us => 0,
         TimeUnit::Ns => -3,
     });
-    let [ft, fx, fy, fp] = layout.fields;
-    let conv = |row: &[u8]| -> std::result::Result<(i64, u16, u16, i8), String> {
-        let t = match ft.scalar.read(&row[ft.offset..], ft.big_endian) {
-            Num::F(v) if !v.is_finite() => return Err(format!("time {v} is not finite")),
-            Num::F(v) => (v * scale).round() as i64,
-            Num::I(v) if scale >= 1.0 => v.saturating_mul(scale as i64),
-            Num::I(v) => (v as f64 * scale).round() as i64,
-        };
-        let coord = |f: Field, what: &str| -> std::result::Result<u16, String> {
-            match f.scalar.read(&row[f.offset..], f.big_endian) {
-                Num::I(v) => u16::try_from(v).map_err(|_| format!("{what} = {v} outside 0..=65535")),
-                Num::F(v) if v.fract() == 0.0 && (0.0..=65535.0).contains(&v) => Ok(v as u16),
-                Num::F(v) => Err(format!("{what} = {v} is not a pixel coordinate")),
-            }
-        };
-        let p = match fp.scalar.read(&row[fp.offset..], fp.big_endian) {
-            Num::I(1) => 1,
-            Num::I(0 | -1) => -1,
-            Num::F(1.0) => 1,
-            Num::F(v) if v == 0.0 || v == -1.0 => -1,
-            Num::I(v) => return Err(format!("polarity {v} is not one of 0/1, -1/+1")),
-            Num::F(v) => return Err(format!("polarity {v} is not one of 0/1, -1/+1")),
-        };
-        Ok((t, coord(fx, "x")?, coord(fy, "y")?, p))
-    };
-    let parts: Vec<std::result::Result<Events, (usize, String)>> = (0..n.div_ceil(CHUNK_ROWS))
-        .into_par_iter()
-        .map(|c| {
-            let range = c * CHUNK_ROWS..((c + 1) * CHUNK_ROWS).min(n);
-            let mut ev = Events::with_capacity(range.len(), 0, 0);
-            for i in range {
-                let (t, x, y, p) = conv(&data[i * rs..(i + 1) * rs]).map_err(|m| (i, m))?;
-                ev.push(t, x, y, p);
-            }
-            Ok(ev)
-        })
-        .collect();
-    for part in parts {
-        match part {
-            Ok(ev) => out.extend(&ev),
-            Err((i, msg)) => {
-                let row = first_row + i as u64;
-                let off = layout.data_offset as u64 + row * rs as u64;
-                return Err(Error::format(path, format!("row {row} (byte offset {off})"), msg));
-            }
+    let t_i = move |v: i64| -> std::result::Result<i64, String> {
+        match unit {
+            TimeUnit::S => v.checked_mul(1_000_000).ok_or_else(|| format!("time {v} s overflows")),
+            TimeUnit::Ms => v.checked_mul(1_000).ok_or_else(|| format!("time {v} ms overflows")),
+            TimeUnit::Us => Ok(v),
+            TimeUnit::Ns => Ok((v as f64 * 1e-3).round() as i64),
         }
+    };
+    let t_f = move |v: f64| -> std::result::Result<i64, String> {
+        if v.is_finite() {
+            Ok((v * scale_f).round() as i64)
+        } else {
+            Err(format!("time {v} is not finite"))
+        }
+    };
+    let p_i = |v: i64| match v {
+        1 => Ok(1i8),
+        0 | -1 => Ok(-1),
+        _ => Err(format!("polarity {v} is not one of 0/1, -1/+1")),
+    };
+    let p_f = |v: f64| {
+        if v == 1.0 {
+            Ok(1i8)
+        } else if v == 0.0 || v == -1.0 {
+            Ok(-1)
+        } else {
+            Err(format!("polarity {v} is not one of 0/1, -1/+1"))
+        }
+    };
+    let [ft, fx, fy, fp] = layout.fields;
+    let start = out.len();
+    out.t.resize(start + n, 0);
+    out.x.resize(start + n, 0);
+    out.y.resize(start + n, 0);
+    out.p.resize(start + n, 0);
+    let first_error = out.t[start..]
+        .par_chunks_mut(CH)
+        .zip(out.x[start..].par_chunks_mut(CH))
+        .zip(out.y[start..].par_chunks_mut(CH))
+        .zip(out.p[start..].par_chunks_mut(CH))
+        .zip(data[..n * rs].par_chunks(CH * rs))
+        .enumerate()
+        .filter_map(|(c, ((((t, x), y), p), d))| {
+            [
+                column(d, rs, ft, t, t_i, t_f),
+                column(d, rs, fx, x, coord_i("x"), coord_f("x")),
+                column(d, rs, fy, y, coord_i("y"), coord_f("y")),
+                column(d, rs, fp, p, p_i, p_f),
+            ]
+            .into_iter()
+            .filter_map(|r| r.err())
+            .min_by_key(|(i, _)| *i)
+            .map(|(i, m)| (c * CH + i, m))
+        })
+        .min_by_key(|(i, _)| *i);
+    if let Some((i, msg)) = first_error {
+        let row = first_row + i as u64;
+        let off = layout.data_offset as u64 + row * rs as u64;
+        return Err(Error::format(path, format!("row {row} (byte offset {off})"), msg));
     }
     Ok(())
 }

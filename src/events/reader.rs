@@ -266,19 +266,12 @@ impl EventReader {
 
     /// Read one more block and decode it into `pending` (or finish at end of file).
     fn fill(&mut self) -> Result<()> {
-        let have = self.buf.len();
-        let want = BLOCK.max(have);
-        self.buf.resize(have + want, 0);
-        let mut got = 0;
-        while got < want {
-            match self.file.read(&mut self.buf[have + got..]) {
-                Ok(0) => break,
-                Ok(n) => got += n,
-                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-                Err(e) => return Err(Error::io(&self.path, e)),
-            }
-        }
-        self.buf.truncate(have + got);
+        // read_to_end fills spare capacity without zeroing it first.
+        let want = BLOCK.max(self.buf.len());
+        let got = (&mut self.file)
+            .take(want as u64)
+            .read_to_end(&mut self.buf)
+            .map_err(|e| Error::io(&self.path, e))?;
         let before = self.pending.len();
         let used = self.decoder.get().decode(&self.buf, self.buf_offset, &mut self.pending)?;
         self.buf.drain(..used);
@@ -346,6 +339,11 @@ impl EventReader {
 
     /// Every remaining event.
     pub fn read_all(&mut self) -> Result<Events> {
+        if let (AnyDecoder::Npy(d), true) = (&self.decoder, self.pending.is_empty()) {
+            // The row count is known: one allocation instead of repeated growth.
+            let rows = usize::try_from(d.layout().rows).unwrap_or(0).min(self.file_size as usize);
+            self.pending = Events::with_capacity(rows, self.width, self.height);
+        }
         while !self.finished {
             self.fill()?;
         }

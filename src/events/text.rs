@@ -429,10 +429,6 @@ impl LineParser<'_> {
         if extra {
             return Err(self.count_error(line));
         }
-        if (self.width > 0 && u32::from(x) >= self.width) || (self.height > 0 && u32::from(y) >= self.height)
-        {
-            return Err(format!("event ({x}, {y}) outside the {}x{} sensor", self.width, self.height));
-        }
         Ok((t, x, y, p))
     }
 
@@ -441,37 +437,146 @@ impl LineParser<'_> {
         format!("expected {} columns, found {n}", self.layout.roles.len())
     }
 
+    /// The common line shape in one pass: unsigned decimals separated by exactly the delimiter,
+    /// ending in `\n` / `\r\n` / end of data. Anything else (signs, spaces after commas, exponents,
+    /// booleans, comments, errors) returns `None` and goes through [`Self::parse_line`].
+    #[inline(always)]
+    fn fast_line(&self, data: &[u8], mut i: usize) -> Option<((i64, u16, u16, i8), usize)> {
+        let n = data.len();
+        let (ws, d) = match self.layout.delimiter {
+            Delimiter::Byte(d) => (false, d),
+            Delimiter::Whitespace => (true, b' '),
+        };
+        let (mut t, mut x, mut y, mut p) = (0i64, 0u16, 0u16, 0i8);
+        let k = self.layout.roles.len();
+        for (j, &role) in self.layout.roles.iter().enumerate() {
+            let neg = role == Role::P && data.get(i) == Some(&b'-');
+            i += usize::from(neg);
+            let mut m = 0u64;
+            let start = i;
+            while i < n && data[i].wrapping_sub(b'0') <= 9 {
+                m = m.wrapping_mul(10) + u64::from(data[i] - b'0');
+                i += 1;
+            }
+            let int_digits = i - start;
+            let mut frac = 0;
+            if i < n && data[i] == b'.' {
+                i += 1;
+                let s1 = i;
+                while i < n && data[i].wrapping_sub(b'0') <= 9 {
+                    m = m.wrapping_mul(10) + u64::from(data[i] - b'0');
+                    i += 1;
+                }
+                frac = i - s1;
+            }
+            if int_digits == 0 || int_digits + frac > 18 {
+                return None;
+            }
+            if j + 1 < k {
+                if data.get(i) != Some(&d) && !(ws && data.get(i) == Some(&b'\t')) {
+                    return None;
+                }
+                i += 1;
+                while ws && i < n && (data[i] == b' ' || data[i] == b'\t') {
+                    i += 1;
+                }
+            } else {
+                i += usize::from(data.get(i) == Some(&b'\r'));
+                if i < n {
+                    if data[i] != b'\n' {
+                        return None;
+                    }
+                    i += 1;
+                }
+            }
+            match role {
+                Role::T => {
+                    let e = self.exp - frac as i32;
+                    t = if e >= 0 {
+                        i64::try_from(m.checked_mul(POW10[e as usize])?).ok()?
+                    } else if -e <= 18 {
+                        let div = POW10[(-e) as usize];
+                        ((m + div / 2) / div) as i64
+                    } else {
+                        return None;
+                    };
+                }
+                Role::X | Role::Y => {
+                    let v = u16::try_from(m).ok().filter(|_| frac == 0)?;
+                    if role == Role::X {
+                        x = v;
+                    } else {
+                        y = v;
+                    }
+                }
+                Role::P => {
+                    p = match (neg, m, frac) {
+                        (false, 1, 0) => 1,
+                        (false, 0, 0) | (true, 1, 0) => -1,
+                        _ => return None,
+                    }
+                }
+                Role::Skip => {}
+            }
+        }
+        Some(((t, x, y, p), i))
+    }
+
     fn parse_chunk(&self, data: &[u8]) -> Chunk {
         let mut events = Events::with_capacity(data.len() / 16, self.width, self.height);
         let mut lines = 0u64;
         let mut first_event_line = 0u64;
         let mut pos = 0;
         while pos < data.len() {
-            let end = memchr::memchr(b'\n', &data[pos..]).map_or(data.len(), |i| pos + i);
-            let line = strip_cr(&data[pos..end]);
-            pos = end + 1;
             lines += 1;
-            if is_blank_or_comment(line) {
-                continue;
-            }
-            match self.parse_line(line) {
-                Ok((t, x, y, p)) => {
-                    if self.require_sorted && events.t.last().is_some_and(|&last| t < last) {
-                        let msg =
-                            format!("time goes backwards ({} < previous {})", t, events.t.last().unwrap());
-                        return Chunk { events, lines, first_event_line, error: Some((lines, msg)) };
-                    }
-                    if events.is_empty() {
-                        first_event_line = lines;
-                    }
-                    events.push(t, x, y, p);
+            let parsed = match self.fast_line(data, pos) {
+                Some((ev, next)) => {
+                    pos = next;
+                    Ok(ev)
                 }
-                Err(msg) => return Chunk { events, lines, first_event_line, error: Some((lines, msg)) },
-            }
+                None => {
+                    let end = memchr::memchr(b'\n', &data[pos..]).map_or(data.len(), |i| pos + i);
+                    let line = strip_cr(&data[pos..end]);
+                    pos = end + 1;
+                    if is_blank_or_comment(line) {
+                        continue;
+                    }
+                    self.parse_line(line)
+                }
+            };
+            let msg = match parsed {
+                Ok((t, x, y, p)) => {
+                    if (self.width > 0 && u32::from(x) >= self.width)
+                        || (self.height > 0 && u32::from(y) >= self.height)
+                    {
+                        format!("event ({x}, {y}) outside the {}x{} sensor", self.width, self.height)
+                    } else if self.require_sorted && events.t.last().is_some_and(|&last| t < last) {
+                        format!("time goes backwards ({t} < previous {})", events.t.last().unwrap())
+                    } else {
+                        if events.is_empty() {
+                            first_event_line = lines;
+                        }
+                        events.push(t, x, y, p);
+                        continue;
+                    }
+                }
+                Err(msg) => msg,
+            };
+            return Chunk { events, lines, first_event_line, error: Some((lines, msg)) };
         }
         Chunk { events, lines, first_event_line, error: None }
     }
 }
+
+const POW10: [u64; 19] = {
+    let mut p = [1u64; 19];
+    let mut i = 1;
+    while i < 19 {
+        p[i] = p[i - 1] * 10;
+        i += 1;
+    }
+    p
+};
 
 /// Split `data` into about `n` pieces that each end just after a newline (the last may not).
 fn split_at_lines(data: &[u8], n: usize) -> Vec<&[u8]> {
@@ -733,6 +838,47 @@ mod tests {
         assert!(e.contains("line 50001"), "{e}");
         let ev = read(&text[..text.len() - 11], &TextOptions::default()).unwrap();
         assert_eq!(ev.t, (0..50_000).collect::<Vec<i64>>());
+    }
+
+    #[test]
+    fn fast_path_agrees_with_general_parser() {
+        let lines = [
+            "12,3,4,1",
+            "0.0000005,3,4,0",
+            "1.25,65535,0,-1",
+            "7,65536,0,1",
+            "7,1.0,0,1",
+            "7,1,2,3",
+            "5,1,2,1\r",
+            "1e3,1,2,1",
+            " 5,1,2,1",
+            "5, 1,2,1",
+            "5,1,2,true",
+            "99999999999999999999,1,1,1",
+            "1,2,3,4,5",
+            "1,2,3",
+        ];
+        for unit in [TimeUnit::S, TimeUnit::Us, TimeUnit::Ns] {
+            let layout = TextLayout {
+                delimiter: Delimiter::Byte(b','),
+                has_header: false,
+                roles: vec![Role::T, Role::X, Role::Y, Role::P],
+                time_unit: unit,
+            };
+            let parser = LineParser {
+                layout: &layout,
+                exp: unit.to_us_exp(),
+                width: 0,
+                height: 0,
+                require_sorted: false,
+            };
+            for line in lines {
+                let general = parser.parse_line(strip_cr(line.as_bytes())).ok();
+                if let Some((ev, next)) = parser.fast_line(line.as_bytes(), 0) {
+                    assert_eq!((Some(ev), next), (general, line.len()), "{line:?} in {unit:?}");
+                }
+            }
+        }
     }
 
     #[test]
