@@ -14,6 +14,7 @@ COMMAND_MODULES = [
     "evgs.events.cli",
     "evgs.eval.cli",
     "evgs.sim.cli",
+    "evgs.data.cli",
 ]
 
 
