@@ -1,15 +1,15 @@
-//! Back-to-front gradient pass of one tile (RASTER_MATH.md, "Backward"), vectorised across the 16 lanes
-//! of a tile row like the forward pass. Each (tile, splat) pair gets its own gradient slot: the sum
-//! over the tile's pixels in lane order, so no two threads ever write the same memory.
+//! Back-to-front gradient pass of one tile (RASTER_MATH.md, "Backward"), vectorised across the 8
+//! lanes of a tile segment like the forward pass. Each (tile, splat) pair gets its own gradient slot:
+//! the sum over the tile's pixels in a fixed lane order, so no two threads ever write the same memory.
 
 use super::camera::TILE;
-use super::forward::{alpha_at, lane_centres, row_span, TileJob, ALPHA_MAX};
+use super::forward::{alpha_at, lane_centres, RowTerms, TileJob, ALPHA_MAX, LANES, SEGS};
 use super::project::{Splat, SplatGrad, ALPHA_MIN};
 
-type Row = [f32; TILE];
+type Lanes = [f32; LANES];
 
-/// The forward state and upstream gradients of one tile (tile-major, as stored by the forward pass),
-/// plus the upstream image gradients (row-major, whole image) and the background.
+/// The forward state of one tile (tile-major, as stored by the forward pass), the upstream image
+/// gradients of its view (row-major, whole image) and the background.
 pub(crate) struct TileGradIn<'a> {
     pub t_final: &'a [f32],
     pub last: &'a [u32],
@@ -20,29 +20,29 @@ pub(crate) struct TileGradIn<'a> {
     pub background: &'a [f32],
 }
 
-/// Per-lane gradient sums of one splat over the rows of a tile.
+/// Per-lane gradient sums of one splat over the segments of a tile.
 struct LaneAcc<const NC: usize> {
-    u: Row,
-    v: Row,
-    a: Row,
-    b: Row,
-    c: Row,
-    opacity: Row,
-    z: Row,
-    color: [Row; NC],
+    u: Lanes,
+    v: Lanes,
+    a: Lanes,
+    b: Lanes,
+    c: Lanes,
+    opacity: Lanes,
+    z: Lanes,
+    color: [Lanes; NC],
 }
 
 impl<const NC: usize> LaneAcc<NC> {
     fn new() -> Self {
-        let z = [0.0; TILE];
+        let z = [0.0; LANES];
         LaneAcc { u: z, v: z, a: z, b: z, c: z, opacity: z, z, color: [z; NC] }
     }
 
     fn reduce(&self) -> SplatGrad {
-        let sum = |r: &Row| r.iter().sum::<f32>();
+        let sum = |r: &Lanes| r.iter().sum::<f32>();
         let mut color = [0.0; 3];
-        for (ch, c) in color.iter_mut().take(NC).enumerate() {
-            *c = sum(&self.color[ch]);
+        for (c, lanes) in color.iter_mut().zip(&self.color) {
+            *c = sum(lanes);
         }
         SplatGrad {
             u: sum(&self.u),
@@ -57,17 +57,19 @@ impl<const NC: usize> LaneAcc<NC> {
     }
 }
 
-/// Per-pixel running state of the backward pass for one tile row.
-struct RowState<const NC: usize> {
-    t: Row,
+/// Per-pixel running state of the backward pass for one segment.
+struct Seg<const NC: usize> {
+    t: Lanes,
     /// Colour and depth composited behind the current splat.
-    s_color: [Row; NC],
-    s_depth: Row,
-    g_color: [Row; NC],
-    g_depth: Row,
+    s_color: [Lanes; NC],
+    s_depth: Lanes,
+    g_color: [Lanes; NC],
+    g_depth: Lanes,
     /// `T_final·(∂L/∂V − Σ_k bg_k ∂L/∂C_k)`: the alpha and background terms of `∂L/∂α`, times `1 − α`.
-    g_final: Row,
-    last: [u32; TILE],
+    g_final: Lanes,
+    last: [u32; LANES],
+    /// The largest `last` of the segment: splats behind it are skipped.
+    max_last: u32,
 }
 
 /// Gradient pass of one tile; fills `out[k]` for every tile-list index `k`, returns the evaluations.
@@ -77,42 +79,49 @@ pub(crate) fn backward_tile<const NC: usize>(
     out: &mut [SplatGrad],
 ) -> u64 {
     let px = lane_centres(job.x0);
-    let mut rows: Vec<RowState<NC>> = (0..job.rows).map(|r| row_state::<NC>(job, input, r)).collect();
-    let row_last: Vec<u32> = rows.iter().map(|s| *s.last.iter().max().unwrap()).collect();
-    let k_end = row_last.iter().copied().max().unwrap_or(0) as usize;
+    let mut segs: Vec<[Seg<NC>; SEGS]> =
+        (0..job.rows).map(|r| std::array::from_fn(|h| seg_state::<NC>(job, input, r, h))).collect();
+    let k_end = segs.iter().flatten().map(|s| s.max_last).max().unwrap_or(0) as usize;
     out.fill(SplatGrad::default());
     let mut evaluations = 0u64;
     for k in (0..k_end).rev() {
         let g = job.ids[k] as usize;
         let s = &job.splats[g].splat;
+        let Some(((r0, r1), (h0, h1))) = job.span(s) else { continue };
         let col: [f32; NC] = std::array::from_fn(|ch| job.colors[g * NC + ch]);
         let mut acc = LaneAcc::<NC>::new();
-        for r in row_span(s, job.y0, job.rows) {
-            if row_last[r] as usize <= k {
-                continue;
+        for (r, row_segs) in segs.iter_mut().enumerate().take(r1 + 1).skip(r0) {
+            let row = RowTerms::new(s, (job.y0 + r) as f32 + 0.5);
+            for h in h0..=h1 {
+                let seg = &mut row_segs[h];
+                if seg.max_last as usize <= k {
+                    continue;
+                }
+                evaluations += job.seg_lanes(h) as u64;
+                backward_seg::<NC>(s, &row, &col, k as u32, &px[h], seg, &mut acc);
             }
-            evaluations += job.lanes as u64;
-            let py = (job.y0 + r) as f32 + 0.5;
-            backward_row::<NC>(s, &col, k as u32, &px, py, &mut rows[r], &mut acc);
         }
         out[k] = acc.reduce();
     }
     evaluations
 }
 
-fn row_state<const NC: usize>(job: &TileJob, input: &TileGradIn, r: usize) -> RowState<NC> {
-    let z = [0.0f32; TILE];
-    let mut st = RowState {
-        t: input.t_final[r * TILE..(r + 1) * TILE].try_into().unwrap(),
+fn seg_state<const NC: usize>(job: &TileJob, input: &TileGradIn, r: usize, h: usize) -> Seg<NC> {
+    let z = [0.0f32; LANES];
+    let at = r * TILE + h * LANES;
+    let mut st = Seg {
+        t: input.t_final[at..at + LANES].try_into().unwrap(),
         s_color: [z; NC],
         s_depth: z,
         g_color: [z; NC],
         g_depth: z,
         g_final: z,
-        last: input.last[r * TILE..(r + 1) * TILE].try_into().unwrap(),
+        last: input.last[at..at + LANES].try_into().unwrap(),
+        max_last: 0,
     };
-    for l in 0..job.lanes {
-        let p = (job.y0 + r) * input.width + job.x0 + l;
+    st.max_last = *st.last.iter().max().unwrap();
+    for l in 0..job.seg_lanes(h) {
+        let p = (job.y0 + r) * input.width + job.x0 + h * LANES + l;
         let mut bg_dot = 0.0;
         for ch in 0..NC {
             st.g_color[ch][l] = input.grad_color[p * NC + ch];
@@ -124,24 +133,24 @@ fn row_state<const NC: usize>(job: &TileJob, input: &TileGradIn, r: usize) -> Ro
     st
 }
 
-/// One splat (tile-list index `k`) over one tile row, back to front; branch-free (vector selects).
+/// One splat (tile-list index `k`) over one segment, back to front; branch-free (vector selects).
 /// Indexed lanes (not iterators) keep the loop a plain vectorisable lane loop.
 #[allow(clippy::needless_range_loop)]
 #[inline(always)]
-fn backward_row<const NC: usize>(
+fn backward_seg<const NC: usize>(
     s: &Splat,
+    row: &RowTerms,
     col: &[f32; NC],
     k: u32,
-    px: &Row,
-    py: f32,
-    st: &mut RowState<NC>,
+    px: &Lanes,
+    st: &mut Seg<NC>,
     acc: &mut LaneAcc<NC>,
 ) {
-    let dy = s.v - py;
-    for l in 0..TILE {
+    let dy = row.dy;
+    for l in 0..LANES {
         let dx = s.u - px[l];
-        let (sigma, g, alpha) = alpha_at(s, dx, dy);
-        let valid = k < st.last[l] && sigma >= 0.0 && alpha >= ALPHA_MIN;
+        let (sigma, g, alpha) = alpha_at(s, row, dx);
+        let valid = (k < st.last[l]) & (sigma >= 0.0) & (alpha >= ALPHA_MIN);
         let ra = 1.0 / (1.0 - alpha);
         let t = if valid { st.t[l] * ra } else { st.t[l] };
         let w = if valid { alpha * t } else { 0.0 };
@@ -155,7 +164,7 @@ fn backward_row<const NC: usize>(
         st.s_depth[l] += s.z * w;
         st.t[l] = t;
         let og = s.opacity * g;
-        let unclamped = valid && og < ALPHA_MAX;
+        let unclamped = valid & (og < ALPHA_MAX);
         let g_sigma = if unclamped { -og * g_alpha } else { 0.0 };
         acc.opacity[l] += if unclamped { g * g_alpha } else { 0.0 };
         acc.a[l] += 0.5 * g_sigma * dx * dx;

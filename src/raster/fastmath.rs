@@ -19,7 +19,11 @@ pub(crate) fn exp(x: f32) -> f32 {
         p = p * r + c;
     }
     let e = p * r * r + r + 1.0;
-    e * f32::from_bits(((n as i32 + 127) as u32) << 23)
+    // 2ⁿ without a float→int conversion (Rust's saturating `as` does not vectorise well): adding
+    // 1.5·2²³ puts the integer n + 127 ∈ [0, 254] in the low mantissa bits; shifting by 23 moves it into
+    // the exponent field and pushes every other bit out.
+    let biased = (n + (127.0 + 12_582_912.0)).to_bits();
+    e * f32::from_bits(biased << 23)
 }
 
 #[cfg(test)]

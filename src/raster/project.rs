@@ -26,9 +26,11 @@ pub(crate) struct Splat {
     pub c: f32,
     pub opacity: f32,
     pub z: f32,
-    /// Pixel rows that can reach alpha ≥ 1/255 (inclusive range, conservative by up to one row).
+    /// Pixel rows and columns that can reach alpha ≥ 1/255 (inclusive, conservative by up to one).
     pub row_lo: i32,
     pub row_hi: i32,
+    pub col_lo: i32,
+    pub col_hi: i32,
 }
 
 /// One Gaussian projected into one view; a culled one has radius 0 and an empty rectangle.
@@ -186,6 +188,8 @@ pub(crate) fn project(g: &Params, view: &View, cam: &Camera, lims: &[f32; 4]) ->
         z: p.z,
         row_lo: (v - ry - 0.5).floor().max(-1.0) as i32,
         row_hi: (v + ry - 0.5).ceil().min(h) as i32,
+        col_lo: (u - rx - 0.5).floor().max(-1.0) as i32,
+        col_hi: (u + rx - 0.5).ceil().min(w) as i32,
     };
     Some(Projected { splat, rect, radius: rx.max(ry) as i32 })
 }
