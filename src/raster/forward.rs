@@ -70,7 +70,28 @@ pub(crate) struct TileJob<'a> {
     pub colors: &'a [f32],
 }
 
+/// Splats handled per gather: the splats of a tile list sit at random places in memory, and copying a
+/// batch of them in one tight loop lets the loads overlap instead of stalling the compositing loop.
+pub(crate) const BATCH: usize = 64;
+
 impl TileJob<'_> {
+    /// Copy the splats and colours of tile-list positions `range` into `splats` and `colors`.
+    #[inline]
+    pub fn gather<const NC: usize>(
+        &self,
+        range: std::ops::Range<usize>,
+        splats: &mut Vec<Splat>,
+        colors: &mut Vec<[f32; NC]>,
+    ) {
+        splats.clear();
+        colors.clear();
+        for &g in &self.ids[range] {
+            let g = g as usize;
+            splats.push(self.splats[g].splat);
+            colors.push(std::array::from_fn(|ch| self.colors[g * NC + ch]));
+        }
+    }
+
     /// The tile rows and row segments a splat's extent reaches.
     #[inline(always)]
     pub fn span(&self, s: &Splat) -> Option<((usize, usize), (usize, usize))> {
@@ -129,28 +150,35 @@ pub(crate) fn render_tile<const NC: usize>(job: &TileJob, out: TileOut) -> u64 {
         }
     }
     let mut evaluations = 0u64;
-    for (k, &g) in job.ids.iter().enumerate() {
-        if alive_count == 0 {
-            break;
-        }
-        let s = &job.splats[g as usize].splat;
-        let Some(((r0, r1), (h0, h1))) = job.span(s) else { continue };
-        let col: [f32; NC] = std::array::from_fn(|ch| job.colors[g as usize * NC + ch]);
-        for r in r0..=r1 {
-            let row = RowTerms::new(s, (job.y0 + r) as f32 + 0.5);
-            for h in h0..=h1 {
-                if !alive[r][h] {
-                    continue;
-                }
-                evaluations += job.seg_lanes(h) as u64;
-                let seg = &mut segs[r][h];
-                composite_seg::<NC>(s, &row, &col, k as u32 + 1, &px[h], seg);
-                if seg.done.iter().all(|&d| d != 0) {
-                    alive[r][h] = false;
-                    alive_count -= 1;
+    let (mut splats, mut colors) = (Vec::with_capacity(BATCH), Vec::with_capacity(BATCH));
+    let mut start = 0;
+    while start < job.ids.len() && alive_count > 0 {
+        let end = job.ids.len().min(start + BATCH);
+        job.gather::<NC>(start..end, &mut splats, &mut colors);
+        for (j, (&s, &col)) in splats.iter().zip(&colors).enumerate() {
+            if alive_count == 0 {
+                break;
+            }
+            // (Copies: locals that provably do not alias the tile state keep the lane loop vectorised.)
+            let Some(((r0, r1), (h0, h1))) = job.span(&s) else { continue };
+            let k1 = (start + j) as u32 + 1;
+            for r in r0..=r1 {
+                let row = RowTerms::new(&s, (job.y0 + r) as f32 + 0.5);
+                for h in h0..=h1 {
+                    if !alive[r][h] {
+                        continue;
+                    }
+                    evaluations += job.seg_lanes(h) as u64;
+                    let seg = &mut segs[r][h];
+                    composite_seg::<NC>(&s, &row, &col, k1, &px[h], seg);
+                    if seg.done.iter().all(|&d| d != 0) {
+                        alive[r][h] = false;
+                        alive_count -= 1;
+                    }
                 }
             }
         }
+        start = end;
     }
     for (r, row) in segs.iter().enumerate() {
         for (h, seg) in row.iter().enumerate() {
