@@ -40,7 +40,8 @@ impl RowTerms {
 pub(crate) fn alpha_at(s: &Splat, row: &RowTerms, dx: f32) -> (f32, f32, f32) {
     let sigma = dx * (row.half_a * dx + row.b_dy) + row.half_c_dy2;
     let g = fastmath::exp(-sigma);
-    (sigma, g, (s.opacity * g).min(ALPHA_MAX))
+    let og = s.opacity * g;
+    (sigma, g, if og < ALPHA_MAX { og } else { ALPHA_MAX })
 }
 
 /// Pixel-centre x coordinates of a tile's segments.

@@ -197,7 +197,7 @@ pub fn forward(gs: &Gaussians, viewmats: &[f32], cam: &Camera, background: &[f32
     }
     let lims = cam.fov_limits();
     let nt = cam.num_tiles();
-    let views: Vec<ViewState> = viewmats
+    let mut views: Vec<ViewState> = viewmats
         .chunks_exact(16)
         .map(|m| {
             let view = View::from_row_major(m);
@@ -227,8 +227,6 @@ pub fn forward(gs: &Gaussians, viewmats: &[f32], cam: &Camera, background: &[f32
         .zip(outs.into_par_iter())
         .map(|(job, out)| with_channels!(nc, render_tile, job, out))
         .sum();
-    drop(jobs);
-    let mut views = views;
     for ((v, t), l) in views.iter_mut().zip(t_final).zip(last) {
         v.t_final = t;
         v.last = l;
