@@ -3,9 +3,9 @@ per second for the Rust rasterizer, 1 and 2 threads, beside the dense float32 to
 
 A "pixel–Gaussian evaluation" is one (pixel, Gaussian) pair whose alpha the rasterizer computed: for
 each tile and each splat in its depth-sorted list until the tile's pixels all stopped, the in-image
-pixels of the 16-pixel tile rows within the splat's extent that still had a live pixel. The dense
-reference evaluates every Gaussian at every pixel; its throughput is quoted per the same Rust count
-(i.e. useful work per second) so the columns compare wall time for the same image.
+pixels of the 8-pixel row segments (one AVX2 register) that intersect the splat's extent and still had
+a live pixel (``raster::Forward::evaluations``). The dense reference evaluates every Gaussian at every
+pixel; it is compared by wall time for the same image (the speed-up column).
 
 Run: ``make dev && PYTHONPATH=python:tests $VENV/bin/python benches/raster_bench.py [--quick]``
 """

@@ -96,6 +96,7 @@ pub(crate) fn backward_tile<const NC: usize>(
             let mut acc = LaneAcc::<NC>::new();
             for (r, row_segs) in segs.iter_mut().enumerate().take(r1 + 1).skip(r0) {
                 let row = RowTerms::new(&s, (job.y0 + r) as f32 + 0.5);
+                let Some((h0, h1)) = job.row_segs(&s, &row, (h0, h1)) else { continue };
                 for h in h0..=h1 {
                     let seg = &mut row_segs[h];
                     if seg.max_last as usize <= k {

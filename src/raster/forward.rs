@@ -101,6 +101,26 @@ impl TileJob<'_> {
         Some((rows, segs))
     }
 
+    /// The segments of the row described by `row`, within `segs`, where the splat can reach alpha ≥
+    /// 1/255: the chord `σ(dx) ≤ tau` of the ellipse, widened by a pixel on each side; `None` if the
+    /// row misses it. Cheaper than evaluating a segment, and it trims the square extent to the ellipse.
+    #[inline(always)]
+    pub fn row_segs(&self, s: &Splat, row: &RowTerms, segs: (usize, usize)) -> Option<(usize, usize)> {
+        // ½a·dx² + b·dy·dx + ½c·dy² − tau ≤ 0, a > 0.
+        let disc = row.b_dy * row.b_dy - s.a * (2.0 * (row.half_c_dy2 - s.tau));
+        if disc.is_nan() || disc < 0.0 {
+            return None;
+        }
+        let root = disc.sqrt();
+        let (dx_lo, dx_hi) = ((-row.b_dy - root) / s.a, (-row.b_dy + root) / s.a);
+        // Column j has dx = u − (j + ½).
+        let first = (s.u - 0.5 - dx_hi).floor().max(-2.0) as i32 - 1;
+        let last = (s.u - 0.5 - dx_lo).ceil().min(1e9) as i32 + 1;
+        let (h0, h1) = clip_span(first, last, self.x0, LANES, SEGS)?;
+        let (h0, h1) = (h0.max(segs.0), h1.min(segs.1));
+        (h0 <= h1).then_some((h0, h1))
+    }
+
     /// In-image lanes of segment `h`.
     #[inline(always)]
     pub fn seg_lanes(&self, h: usize) -> usize {
@@ -165,6 +185,7 @@ pub(crate) fn render_tile<const NC: usize>(job: &TileJob, out: TileOut) -> u64 {
             let k1 = (start + j) as u32 + 1;
             for r in r0..=r1 {
                 let row = RowTerms::new(&s, (job.y0 + r) as f32 + 0.5);
+                let Some((h0, h1)) = job.row_segs(&s, &row, (h0, h1)) else { continue };
                 for h in h0..=h1 {
                     if !alive[r][h] {
                         continue;

@@ -126,8 +126,9 @@ pub struct Forward {
 
 impl Forward {
     /// Pixel–Gaussian evaluations: (pixel, Gaussian) pairs whose alpha was computed, i.e. for every
-    /// tile and every splat in its list until the tile stopped, the in-image pixels of the 16-pixel
-    /// tile rows within the splat's extent that still had a live pixel.
+    /// tile and every splat in its list until the tile stopped, the in-image pixels of the 8-pixel
+    /// row segments that intersect the splat's extent and still had a live pixel. (The backward pass
+    /// counts the same way, over segments with a pixel the splat was composited into or in front of.)
     pub fn evaluations(&self) -> u64 {
         self.state.forward_evaluations
     }
