@@ -38,7 +38,9 @@ pub(crate) struct Splat {
 }
 
 /// One Gaussian projected into one view; a culled one has radius 0 and an empty rectangle.
+/// Exactly one cache line: the tile loops read these in depth order, i.e. at random addresses.
 #[derive(Clone, Copy, Debug, Default)]
+#[repr(C, align(64))]
 pub(crate) struct Projected {
     pub splat: Splat,
     pub rect: Rect,
