@@ -9,6 +9,7 @@ pub mod index;
 pub mod npy;
 pub mod raw_header;
 pub mod text;
+pub mod undistort;
 pub mod window;
 
 use crate::error::{Error, Result};
