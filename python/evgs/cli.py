@@ -12,6 +12,7 @@ from evgs import __version__
 # ``func`` on its parsers (a callable taking the parsed namespace, returning an exit code).
 COMMAND_MODULES = [
     "evgs.events.cli",
+    "evgs.eval.cli",
 ]
 
 

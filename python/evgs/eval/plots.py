@@ -1,0 +1,118 @@
+"""Figures in the style of the paper's appendix, as PNG files (matplotlib ``Figure`` objects, no pyplot
+state, so plotting works headless and from threads)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from evgs.io_util import atomic_path
+
+if TYPE_CHECKING:
+    from evgs.eval.run import RunEvaluation
+
+_AXES = ("x", "y", "z")
+_EST = {"color": "tab:red", "label": "estimate"}
+_GT = {"color": "black", "linestyle": "--", "label": "ground truth"}
+
+
+def _save(fig: Figure, path: Path) -> Path:
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+    return path
+
+
+def plot_trajectory_3d(p_gt: np.ndarray, p_est: np.ndarray, path: Path, title: str = "") -> Path:
+    """3-D positions, ground truth vs Sim(3)-aligned estimate (start marked)."""
+    fig = Figure(figsize=(6, 5))
+    ax = fig.add_subplot(projection="3d")
+    ax.plot(*p_gt.T, **_GT)
+    ax.plot(*p_est.T, **_EST)
+    ax.scatter(*p_gt[0], color="black", marker="o", label="start")
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+    ax.set_zlabel("z")
+    ax.set_title(title or "Trajectory")
+    ax.legend(loc="upper left")
+    return _save(fig, path)
+
+
+def plot_translation(t: np.ndarray, p_gt: np.ndarray, p_est: np.ndarray, path: Path) -> Path:
+    """Translation per axis vs time."""
+    fig = Figure(figsize=(7, 6))
+    axs = fig.subplots(3, 1, sharex=True)
+    for a, ax in enumerate(axs):
+        ax.plot(t, p_gt[:, a], **_GT)
+        ax.plot(t, p_est[:, a], **_EST)
+        ax.set_ylabel(_AXES[a])
+        ax.grid(alpha=0.3)
+    axs[0].legend(loc="best")
+    axs[0].set_title("Translation evolution (Sim(3)-aligned)")
+    axs[-1].set_xlabel("time [s]")
+    return _save(fig, path)
+
+
+def plot_ypr(t: np.ndarray, ypr_gt: np.ndarray, ypr_est: np.ndarray, path: Path) -> Path:
+    """Yaw, pitch and roll (intrinsic Z-Y-X, degrees) vs time."""
+    fig = Figure(figsize=(7, 6))
+    axs = fig.subplots(3, 1, sharex=True)
+    for a, (ax, name) in enumerate(zip(axs, ("yaw", "pitch", "roll"), strict=True)):
+        ax.plot(t, ypr_gt[:, a], **_GT)
+        ax.plot(t, ypr_est[:, a], **_EST)
+        ax.set_ylabel(f"{name} [°]")
+        ax.grid(alpha=0.3)
+    axs[0].legend(loc="best")
+    axs[0].set_title("Roll, pitch, yaw evolution (first-pose aligned)")
+    axs[-1].set_xlabel("time [s]")
+    return _save(fig, path)
+
+
+def plot_orientation_error(t: np.ndarray, err_deg: np.ndarray, path: Path) -> Path:
+    """Per-frame orientation error (eq. 16–17) with the drift at the last frame marked."""
+    fig = Figure(figsize=(7, 3.5))
+    ax = fig.add_subplot()
+    ax.plot(t, err_deg, color="tab:blue")
+    ax.scatter([t[-1]], [err_deg[-1]], color="tab:red", zorder=3)
+    ax.annotate(f"drift {err_deg[-1]:.3f}°", (t[-1], err_deg[-1]), textcoords="offset points",
+                xytext=(-10, 8), ha="right")  # fmt: skip
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("orientation error [°]")
+    ax.set_title(f"Orientation error evolution — drift @ end frame: {err_deg[-1]:.3f}°")
+    ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def plot_velocity(
+    t: np.ndarray, v_gt: np.ndarray, v_est: np.ndarray, path: Path, score: float | None
+) -> Path:
+    """Velocity per axis by first differences (eq. 18), with the ELOPE score in the title if known."""
+    fig = Figure(figsize=(7, 6))
+    axs = fig.subplots(3, 1, sharex=True)
+    for a, ax in enumerate(axs):
+        ax.plot(t, v_gt[:, a], **_GT)
+        ax.plot(t, v_est[:, a], **_EST)
+        ax.set_ylabel(f"v{_AXES[a]}")
+        ax.grid(alpha=0.3)
+    axs[0].legend(loc="best")
+    axs[0].set_title("Velocity" + (f" — score: {score:.4f}" if score is not None else ""))
+    axs[-1].set_xlabel("time [s]")
+    return _save(fig, path)
+
+
+def plot_run(ev: RunEvaluation, out_dir: Path) -> dict[str, Path]:
+    """All figures of a :class:`evgs.eval.run.RunEvaluation` into ``out_dir``; returns name → path."""
+    tr = ev.traj
+    t = ev.assoc.t - ev.assoc.t[0]
+    tv, v_gt, v_est = ev.velocities()
+    return {
+        "trajectory": plot_trajectory_3d(tr.p_gt, tr.p_est, out_dir / "trajectory_3d.png", ev.sequence.name),
+        "translation": plot_translation(t, tr.p_gt, tr.p_est, out_dir / "translation.png"),
+        "rpy": plot_ypr(t, tr.ypr_gt_deg, tr.ypr_est_deg, out_dir / "rpy.png"),
+        "orientation_error": plot_orientation_error(
+            t, tr.orientation_error_deg, out_dir / "orientation_error.png"
+        ),
+        "velocity": plot_velocity(tv - ev.assoc.t[0], v_gt, v_est, out_dir / "velocity.png", ev.elope_score),
+    }

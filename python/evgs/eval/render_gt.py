@@ -1,0 +1,47 @@
+"""Render a run's final scene (``gaussians.ply``) at the ground-truth frame poses for the image metrics.
+
+The map lives in the estimate's frame, so each ground-truth camera pose is brought into it with the
+inverse of the evaluation Sim(3) (estimate → ground truth); the images therefore show the scene from the
+true viewpoints, independent of the estimated poses at those frames.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from evgs.data.sequence import Sequence
+from evgs.eval.align import Sim3
+from evgs.eval.associate import interpolate_poses
+from evgs.geometry import invert_pose
+from evgs.render import render
+from evgs.slam.gaussians import load_ply
+
+
+def gt_poses_in_map(seq: Sequence, sim3: Sim3, frames: np.ndarray) -> np.ndarray:
+    """(F, 4, 4) camera-to-map poses of the ground truth at the given sequence frames."""
+    gt = seq.poses_gt()
+    if gt is None:
+        raise ValueError(f"{seq.root}: sequence has no poses_gt.txt")
+    t_us = seq.frames_us()[frames]
+    T_gt = interpolate_poses(gt[0].astype(np.float64), gt[1], t_us.astype(np.float64))
+    return sim3.inverse().apply_poses(T_gt)
+
+
+def render_at_gt_frames(
+    ply: str | Path, seq: Sequence, sim3: Sim3, frames: np.ndarray, *, batch: int = 4
+) -> np.ndarray:
+    """(F, H, W) grey renders in [0, 1]; colour renders are averaged over channels to match the grey
+    ground-truth images."""
+    g = load_ply(ply)
+    viewmats = torch.from_numpy(invert_pose(gt_poses_in_map(seq, sim3, frames)).astype(np.float32))
+    out = []
+    with torch.inference_mode():
+        for s in range(0, len(viewmats), batch):
+            res = render(
+                g.means, g.log_scales, g.quats, g.opacities, g.colors, viewmats[s : s + batch], seq.camera
+            )
+            out.append(res.color.mean(dim=-1).clamp(0.0, 1.0).numpy())
+    return np.concatenate(out).astype(np.float64)
