@@ -37,6 +37,7 @@ class DataConfig:
     min_n_winsize: int
     seg_num: int
     training_batch_size: int
+    window_mode: Literal["paper", "reference"]
 
 
 @dataclass(frozen=True)
@@ -129,6 +130,14 @@ class GuardsConfig:
 
 
 @dataclass(frozen=True)
+class EconomyConfig:
+    patience: int
+    min_rel_change: float
+    coarse_factor: int
+    coarse_fraction: float
+
+
+@dataclass(frozen=True)
 class OutputConfig:
     runs_dir: str
     diagnostics_every: int
@@ -150,6 +159,7 @@ class Config:
     loss: LossConfig
     strategy: StrategyConfig
     guards: GuardsConfig
+    economy: EconomyConfig
     output: OutputConfig
 
     def to_dict(self) -> dict[str, Any]:
