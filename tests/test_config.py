@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 from pathlib import Path
 
@@ -12,6 +13,8 @@ from evgs.config import (
     DEFAULT_CONFIG,
     Config,
     ConfigError,
+    add_config_arguments,
+    config_from_args,
     config_from_dict,
     load_config,
     save_config,
@@ -164,3 +167,23 @@ def test_save_round_trip(tmp_path: Path):
     doc["loss"]["bogus"] = 1
     with pytest.raises(ConfigError, match="loss.bogus"):
         config_from_dict(doc, "snapshot")
+
+
+def test_range_checks_name_the_keys():
+    with pytest.raises(ConfigError, match="min_n_winsize <= data.max_n_winsize"):
+        load_config(overrides=["data.min_n_winsize=200000"])
+    with pytest.raises(ConfigError) as e:
+        load_config(overrides=["gaussians.init_opacity=1.0", "strategy.refine_every=0"])
+    assert "gaussians.init_opacity must be in (0, 1)" in str(e.value)
+    assert "strategy.refine_every must be > 0" in str(e.value)
+
+
+def test_command_line_arguments():
+    parser = argparse.ArgumentParser()
+    add_config_arguments(parser)
+    args = parser.parse_args(
+        ["--config", "seenic/orbit_ambient", "--set", "seed=3", "--set", "loss.lambda_ssim=0.2"]
+    )
+    cfg = config_from_args(args)
+    assert cfg.seed == 3 and cfg.loss.lambda_ssim == 0.2 and cfg.data.start_frame == 375
+    assert config_from_args(parser.parse_args([])) == load_config()

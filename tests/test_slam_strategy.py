@@ -191,6 +191,9 @@ def test_strategy_add_and_remove_keep_statistics_aligned():
     s.add(g, opt, extra)
     assert len(g) == 5 and s.grad2d.tolist() == [2.0, 3.0, 5.0, 0.0, 0.0] and len(s.count) == 5
     assert opt.state[g["means"]]["exp_avg"].shape == (5, 3)
+    remove(g, opt, torch.tensor([True, False, False, False, False]))  # behind the strategy's back
+    with pytest.raises(ValueError, match="statistics cover 5 Gaussians but there are 4"):
+        s.accumulate(torch.zeros(1, 4), torch.ones(1, 4), 2, 2)
 
 
 CAM = Camera(64, 48, 50.0, 50.0, 32.0, 24.0)

@@ -229,3 +229,10 @@ def test_random_knots_are_seeded_and_near_identity():
     assert (a - torch.eye(4, dtype=D)).abs().max() < 1e-2
     with pytest.raises(ValueError, match="strictly increasing"):
         Trajectory(np.array([0, 0]), a[:2].numpy())
+
+
+def test_viewmats_are_the_float32_inverse_poses():
+    traj, T = make_traj()
+    v = traj.viewmats_at([0, 4000])
+    assert v.dtype == torch.float32
+    assert torch.allclose(v.double() @ T[[0, 3]], torch.eye(4, dtype=D).expand(2, 4, 4), atol=1e-6)

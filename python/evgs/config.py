@@ -8,6 +8,7 @@ Unknown keys and ill-typed values are rejected with the file, the key and the cl
 
 from __future__ import annotations
 
+import argparse
 import difflib
 import typing
 from collections.abc import Iterable, Mapping
@@ -232,6 +233,33 @@ def _build(cls: type, doc: Mapping[str, Any], source: str, prefix: str = "") -> 
     return cls(**kwargs)
 
 
+def _check_ranges(cfg: Config, source: str) -> None:
+    """Relations a single type check cannot see; each message names the offending keys."""
+    problems = []
+    d, g, s = cfg.data, cfg.gaussians, cfg.strategy
+    if not 0 < d.min_n_winsize <= d.max_n_winsize:
+        problems.append("need 0 < data.min_n_winsize <= data.max_n_winsize")
+    for key, value in [
+        ("gaussians.init_opacity", g.init_opacity),
+        ("strategy.reset_opacity", s.reset_opacity),
+    ]:
+        if not 0 < value < 1:
+            problems.append(f"{key} must be in (0, 1)")
+    if not 0 <= cfg.loss.lambda_ssim <= 1:
+        problems.append("loss.lambda_ssim must be in [0, 1]")
+    positive = {
+        "data.training_batch_size": d.training_batch_size,
+        "init.num_frames": cfg.init.num_frames,
+        "gaussians.num_init": g.num_init,
+        "gaussians.bounding_size": g.bounding_size,
+        "strategy.refine_every": s.refine_every,
+        "mapping.window": cfg.mapping.window,
+    }
+    problems += [f"{key} must be > 0" for key, value in positive.items() if value <= 0]
+    if problems:
+        raise ConfigError(f"{source}: " + "; ".join(problems))
+
+
 def _read_chain(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     """Read ``path`` and its ancestors, validating each file on its own so errors name the right file."""
     path = path.resolve()
@@ -316,12 +344,38 @@ def load_config(path: str | Path = DEFAULT_CONFIG, overrides: Iterable[str] = ()
     doc = _read_chain(path)
     for item in overrides:
         doc = _apply_override(doc, item)
-    return _build(Config, doc, str(path))
+    cfg = _build(Config, doc, str(path))
+    _check_ranges(cfg, str(path))
+    return cfg
+
+
+def add_config_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--config NAME|FILE`` and repeatable ``--set KEY=VALUE`` for commands that take a config."""
+    parser.add_argument(
+        "--config",
+        default=None,
+        metavar="NAME|FILE",
+        help="config file, or a name under configs/ such as synthetic/orbit_ambient (default: default.toml)",
+    )
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override one key, e.g. --set loss.lambda_ssim=0.05 (repeatable)",
+    )
+
+
+def config_from_args(args: argparse.Namespace) -> Config:
+    return load_config(args.config or DEFAULT_CONFIG, args.overrides)
 
 
 def config_from_dict(doc: Mapping[str, Any], source: str = "config") -> Config:
     """A complete config from a plain dict (e.g. a run's ``config.toml`` snapshot)."""
-    return _build(Config, _validate(doc, Config, source), source)
+    cfg = _build(Config, _validate(doc, Config, source), source)
+    _check_ranges(cfg, source)
+    return cfg
 
 
 def save_config(config: Config, path: str | Path) -> None:
@@ -335,6 +389,8 @@ __all__ = [
     "DEFAULT_CONFIG",
     "Config",
     "ConfigError",
+    "add_config_arguments",
+    "config_from_args",
     "config_from_dict",
     "load_config",
     "resolve_config_path",

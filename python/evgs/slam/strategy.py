@@ -121,8 +121,14 @@ class DefaultStrategy:
     count: Tensor = field(default_factory=lambda: torch.zeros(0))
 
     def _ensure(self, n: int) -> None:
-        if len(self.grad2d) != n:
+        """Start the statistics on first use; refuse to silently drop them if they are out of step."""
+        if len(self.grad2d) == 0:
             self.grad2d, self.count = torch.zeros(n), torch.zeros(n)
+        elif len(self.grad2d) != n:
+            raise ValueError(
+                f"strategy: statistics cover {len(self.grad2d)} Gaussians but there are {n}; "
+                "add or remove Gaussians through DefaultStrategy.add/remove"
+            )
 
     def accumulate(self, grad2d_norm: Tensor, radii: Tensor, width: int, height: int) -> None:
         """Add one step's (B, N) per-view ‖∂L/∂(u,v)‖ (pixels) for the visible Gaussians (radii > 0).

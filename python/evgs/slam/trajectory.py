@@ -116,6 +116,10 @@ class Trajectory(torch.nn.Module):
         tau = (t - t0).to(torch.float64) / (t1 - t0).to(torch.float64)
         return interpolate(knots[seg], knots[seg + 1], tau, self.method)
 
+    def viewmats_at(self, t_us: Tensor | np.ndarray) -> Tensor:
+        """(M, 4, 4) float32 world-to-camera matrices, the rasterizer's ``viewmats``."""
+        return se3_inverse(self.pose_at(t_us)).float()
+
     @torch.no_grad()
     def append(self, t_us: int, T_wc: Tensor | np.ndarray | None = None) -> None:
         """Add a knot after the last one; without a pose it is predicted by constant velocity (a single
