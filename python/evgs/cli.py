@@ -13,6 +13,7 @@ from evgs import __version__
 COMMAND_MODULES = [
     "evgs.events.cli",
     "evgs.eval.cli",
+    "evgs.slam.cli",
 ]
 
 
