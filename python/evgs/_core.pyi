@@ -19,6 +19,41 @@ def validate_events(
 
 # --- events: chunks, windows, event frames (src/py/frames.rs) ---
 
+def chunk_bounds(t: npt.NDArray[np.int64], frame_t: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]: ...
+
+class WindowSampler:
+    def __init__(
+        self,
+        start: int,
+        end: int,
+        min_n_winsize: int,
+        max_n_winsize: int,
+        seed: int,
+        mode: str = "paper",
+        seg_num: int = 100,
+    ) -> None: ...
+    def sample(self, batch: int) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]: ...
+    @property
+    def sizes(self) -> tuple[int, int]: ...
+
+def accumulate_frames(
+    t: npt.NDArray[np.int64],
+    x: npt.NDArray[np.uint16],
+    y: npt.NDArray[np.uint16],
+    p: npt.NDArray[np.int8],
+    width: int,
+    height: int,
+    starts: npt.NDArray[np.int64],
+    ends: npt.NDArray[np.int64],
+    c_on: float,
+    c_off: float,
+    downsample_log2: int = 0,
+    undistort_map: npt.NDArray[np.float32] | None = None,
+) -> tuple[npt.NDArray[np.float32], int, int, npt.NDArray[np.uint64]]: ...
+def undistort_map(
+    width: int, height: int, fx: float, fy: float, cx: float, cy: float, distortion: list[float]
+) -> npt.NDArray[np.float32]: ...
+
 # --- raster (src/py/raster.rs) ---
 
 # --- sim (src/py/sim.rs) ---

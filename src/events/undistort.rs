@@ -81,7 +81,7 @@ impl Intrinsics {
         }
         let (rx, ry) = self.distort(x, y);
         let residual = ((rx - xd) * self.fx).abs().max(((ry - yd) * self.fy).abs());
-        (residual <= MAX_RESIDUAL_PX).then(|| (self.fx * x + self.cx, self.fy * y + self.cy))
+        (residual <= MAX_RESIDUAL_PX).then_some((self.fx * x + self.cx, self.fy * y + self.cy))
     }
 
     /// The map for every pixel centre (pixel `(x, y)` has its centre at `(x, y)`, as in OpenCV), row-major,
