@@ -54,9 +54,12 @@ def set_brightness_reference(state: SlamState) -> None:
     state.anchor.set_reference(out.color, out.alpha)
 
 
-def track(state: SlamState, k: int, reporter: StageReporter | None = None) -> StageRecord:
+def track(
+    state: SlamState, k: int, reporter: StageReporter | None = None, pose: torch.Tensor | None = None
+) -> StageRecord:
+    """Track chunk ``k``; the new knot starts at ``pose`` (default: constant-velocity prediction)."""
     cfg = state.cfg
-    state.traj.append(int(state.data.frames_us[k + 1]))
+    state.traj.append(int(state.data.frames_us[k + 1]), pose)
     spec = StageSpec(
         "track", _seq_frame(state, k + 1), cfg.tracking.num_opti_steps, state.data.span_with_min(k, k + 1),
         cfg.data.training_batch_size, stage_seed(cfg.seed, "track", k), [k + 1], [k, k + 1],
