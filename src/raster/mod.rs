@@ -1,1 +1,423 @@
 //! The multithreaded CPU Gaussian rasterizer (forward and analytic backward), gsplat semantics.
+//!
+//! Stages, each in its own module: [`project`] (EWA projection per Gaussian and view), [`tiles`]
+//! (16×16 binning, per-tile depth order), [`forward`] (front-to-back compositing per tile),
+//! [`backward`] (per-tile gradients, reduced per Gaussian in a fixed order, then the projection's
+//! backward). Parallel with rayon over Gaussians and over (view, tile); no atomics anywhere, so the
+//! results are bitwise identical for any thread count. Conventions: `RASTER_MATH.md`.
+
+mod backward;
+mod camera;
+mod fastmath;
+mod forward;
+mod project;
+mod tiles;
+
+use rayon::prelude::*;
+
+pub use camera::{Camera, TILE};
+
+use crate::error::{Error, Result};
+use backward::{backward_tile, TileGradIn};
+use camera::View;
+use forward::{render_tile, TileJob, TileOut};
+use project::{project, project_backward, Params, Projected, SplatGrad};
+use tiles::{bin, pairs_by_splat, split_by_offsets, Bins};
+
+/// Pixels per tile.
+const AREA: usize = TILE * TILE;
+
+/// The Gaussians to render, as flat row-major arrays. Opacities are already activated (in (0, 1)).
+#[derive(Clone, Copy, Debug)]
+pub struct Gaussians<'a> {
+    /// (N, 3) world positions.
+    pub means: &'a [f32],
+    /// (N, 3) log standard deviations.
+    pub log_scales: &'a [f32],
+    /// (N, 4) `(w, x, y, z)`, normalised inside; a zero quaternion renders as the identity.
+    pub quats: &'a [f32],
+    /// (N,)
+    pub opacities: &'a [f32],
+    /// (N, C), C in 1..=3.
+    pub colors: &'a [f32],
+    /// C (explicit, so that N = 0 still has a channel count).
+    pub channels: usize,
+}
+
+impl Gaussians<'_> {
+    pub fn len(&self) -> usize {
+        self.opacities.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.opacities.is_empty()
+    }
+
+    fn params(&self, i: usize) -> Params<'_> {
+        Params {
+            mean: &self.means[3 * i..3 * i + 3],
+            log_scale: &self.log_scales[3 * i..3 * i + 3],
+            quat: &self.quats[4 * i..4 * i + 4],
+            opacity: self.opacities[i],
+        }
+    }
+
+    fn validate(&self) -> Result<usize> {
+        let n = self.len();
+        let shapes = [
+            ("means", self.means.len(), 3),
+            ("log_scales", self.log_scales.len(), 3),
+            ("quats", self.quats.len(), 4),
+        ];
+        for (name, len, width) in shapes {
+            if len != n * width {
+                return Err(Error::Invalid(format!("raster: {name} has {len} values, expected {n}×{width}")));
+            }
+        }
+        let c = self.channels;
+        if !(1..=3).contains(&c) || self.colors.len() != n * c {
+            return Err(Error::Invalid(format!(
+                "raster: colors has {} values, expected {n}×{c} with 1 to 3 channels",
+                self.colors.len()
+            )));
+        }
+        Ok(c)
+    }
+}
+
+struct ViewState {
+    proj: Vec<Projected>,
+    bins: Bins,
+    /// Tile-major per-pixel final transmittance and `last` (see [`forward::TileOut`]).
+    t_final: Vec<f32>,
+    last: Vec<u32>,
+}
+
+/// What the backward pass needs from the forward pass: projections, per-tile sorted lists and the
+/// per-pixel final transmittance and last contributor. Opaque to callers.
+pub struct RasterState {
+    cam: Camera,
+    channels: usize,
+    num_gaussians: usize,
+    background: Vec<f32>,
+    views: Vec<ViewState>,
+    /// Pixel–Gaussian evaluations of the forward pass (see [`Forward::evaluations`]).
+    pub forward_evaluations: u64,
+}
+
+impl RasterState {
+    pub fn num_views(&self) -> usize {
+        self.views.len()
+    }
+
+    pub fn channels(&self) -> usize {
+        self.channels
+    }
+}
+
+/// Forward outputs, row-major: colour (B, H, W, C), depth D and alpha V (B, H, W), radii (B, N).
+pub struct Forward {
+    pub color: Vec<f32>,
+    pub depth: Vec<f32>,
+    pub alpha: Vec<f32>,
+    pub radii: Vec<i32>,
+    pub state: RasterState,
+}
+
+impl Forward {
+    /// Pixel–Gaussian evaluations: (pixel, Gaussian) pairs whose alpha was computed, i.e. for every
+    /// tile and every splat in its list until the tile stopped, the in-image pixels of the 16-pixel
+    /// tile rows within the splat's extent that still had a live pixel.
+    pub fn evaluations(&self) -> u64 {
+        self.state.forward_evaluations
+    }
+}
+
+/// Gradients of the loss; same shapes as the inputs. `viewmats` is (B, 4, 4) with a zero last row;
+/// `grad2d_norm` (B, N) is the norm of `∂L/∂(u, v)` per view (the densification signal).
+pub struct Gradients {
+    pub means: Vec<f32>,
+    pub log_scales: Vec<f32>,
+    pub quats: Vec<f32>,
+    pub opacities: Vec<f32>,
+    pub colors: Vec<f32>,
+    pub viewmats: Vec<f32>,
+    pub grad2d_norm: Vec<f32>,
+    pub evaluations: u64,
+}
+
+fn check_views(viewmats: &[f32]) -> Result<usize> {
+    if viewmats.len() % 16 != 0 || viewmats.iter().any(|v| !v.is_finite()) {
+        return Err(Error::Invalid(format!(
+            "raster: viewmats must be finite (B, 4, 4); got {} values",
+            viewmats.len()
+        )));
+    }
+    Ok(viewmats.len() / 16)
+}
+
+/// Where the tiles of a view are and what each composites.
+fn tile_jobs<'a>(cam: &Camera, view: &'a ViewState, colors: &'a [f32]) -> impl Iterator<Item = TileJob<'a>> {
+    let (w, h, tx) = (cam.width as usize, cam.height as usize, cam.tiles_x());
+    (0..cam.num_tiles()).map(move |t| {
+        let (x0, y0) = ((t % tx) * TILE, (t / tx) * TILE);
+        TileJob {
+            x0,
+            y0,
+            lanes: TILE.min(w - x0),
+            rows: TILE.min(h - y0),
+            ids: view.bins.tile(t),
+            splats: &view.proj,
+            colors,
+        }
+    })
+}
+
+/// Run `f` with the channel count as a compile-time constant (the per-pixel loops unroll over it).
+macro_rules! with_channels {
+    ($nc:expr, $f:ident, $($arg:expr),*) => {
+        match $nc {
+            1 => $f::<1>($($arg),*),
+            2 => $f::<2>($($arg),*),
+            _ => $f::<3>($($arg),*),
+        }
+    };
+}
+
+/// Render B views of the Gaussians. `background` has one value per colour channel.
+pub fn forward(gs: &Gaussians, viewmats: &[f32], cam: &Camera, background: &[f32]) -> Result<Forward> {
+    cam.validate()?;
+    let nc = gs.validate()?;
+    let b = check_views(viewmats)?;
+    if background.len() != nc {
+        return Err(Error::Invalid(format!(
+            "raster: background has {} values for {nc} colour channels",
+            background.len()
+        )));
+    }
+    let lims = cam.fov_limits();
+    let nt = cam.num_tiles();
+    let views: Vec<ViewState> = viewmats
+        .chunks_exact(16)
+        .map(|m| {
+            let view = View::from_row_major(m);
+            let proj: Vec<Projected> = (0..gs.len())
+                .into_par_iter()
+                .map(|i| project(&gs.params(i), &view, cam, &lims).unwrap_or_default())
+                .collect();
+            let bins = bin(&proj, cam.tiles_x(), cam.tiles_y());
+            ViewState { proj, bins, t_final: Vec::new(), last: Vec::new() }
+        })
+        .collect();
+    // Tile-major colour and depth, converted to row-major below.
+    let mut color_t = vec![0.0f32; b * nt * AREA * nc];
+    let mut depth_t = vec![0.0f32; b * nt * AREA];
+    let mut t_final: Vec<Vec<f32>> = (0..b).map(|_| vec![0.0; nt * AREA]).collect();
+    let mut last: Vec<Vec<u32>> = (0..b).map(|_| vec![0; nt * AREA]).collect();
+    let jobs: Vec<TileJob> = views.iter().flat_map(|v| tile_jobs(cam, v, gs.colors)).collect();
+    let outs: Vec<TileOut> = color_t
+        .chunks_mut(AREA * nc)
+        .zip(depth_t.chunks_mut(AREA))
+        .zip(t_final.iter_mut().flat_map(|v| v.chunks_mut(AREA)))
+        .zip(last.iter_mut().flat_map(|v| v.chunks_mut(AREA)))
+        .map(|(((color, depth), t_final), last)| TileOut { color, depth, t_final, last })
+        .collect();
+    let evaluations: u64 = jobs
+        .par_iter()
+        .zip(outs.into_par_iter())
+        .map(|(job, out)| with_channels!(nc, render_tile, job, out))
+        .sum();
+    drop(jobs);
+    let mut views = views;
+    for ((v, t), l) in views.iter_mut().zip(t_final).zip(last) {
+        v.t_final = t;
+        v.last = l;
+    }
+
+    let (w, h, tx) = (cam.width as usize, cam.height as usize, cam.tiles_x());
+    let mut color = vec![0.0f32; b * h * w * nc];
+    let mut depth = vec![0.0f32; b * h * w];
+    let mut alpha = vec![0.0f32; b * h * w];
+    color
+        .par_chunks_mut(w * nc)
+        .zip(depth.par_chunks_mut(w))
+        .zip(alpha.par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(row, ((c, d), a))| {
+            let (vi, y) = (row / h, row % h);
+            for x in 0..w {
+                let tile = vi * nt + (y / TILE) * tx + x / TILE;
+                let lane = (y % TILE) * TILE + x % TILE;
+                let tf = views[vi].t_final[(tile - vi * nt) * AREA + lane];
+                a[x] = 1.0 - tf;
+                d[x] = depth_t[tile * AREA + lane];
+                for ch in 0..nc {
+                    c[x * nc + ch] = color_t[(tile * nc + ch) * AREA + lane] + tf * background[ch];
+                }
+            }
+        });
+    let radii = views.iter().flat_map(|v| v.proj.iter().map(|p| p.radius)).collect();
+    let state = RasterState {
+        cam: *cam,
+        channels: nc,
+        num_gaussians: gs.len(),
+        background: background.to_vec(),
+        views,
+        forward_evaluations: evaluations,
+    };
+    Ok(Forward { color, depth, alpha, radii, state })
+}
+
+/// Gaussians per block of the projection backward; the per-view pose gradient is summed per block
+/// and then over blocks in order, so its bits do not depend on the thread count.
+const BLOCK: usize = 512;
+
+/// Gradients of a loss on the forward outputs, given its gradients wrt colour (B, H, W, C), depth and
+/// alpha (B, H, W). `gs` and `viewmats` must be the forward pass's inputs.
+pub fn backward(
+    gs: &Gaussians,
+    viewmats: &[f32],
+    state: &RasterState,
+    grad_color: &[f32],
+    grad_depth: &[f32],
+    grad_alpha: &[f32],
+) -> Result<Gradients> {
+    let nc = gs.validate()?;
+    let b = check_views(viewmats)?;
+    let (n, cam) = (gs.len(), &state.cam);
+    let hw = cam.num_pixels();
+    let sizes = [
+        ("gaussians", n, state.num_gaussians),
+        ("colour channels", nc, state.channels),
+        ("views", b, state.views.len()),
+        ("grad_color values", grad_color.len(), b * hw * nc),
+        ("grad_depth values", grad_depth.len(), b * hw),
+        ("grad_alpha values", grad_alpha.len(), b * hw),
+    ];
+    for (what, got, want) in sizes {
+        if got != want {
+            return Err(Error::Invalid(format!(
+                "raster backward: {got} {what}, the forward pass had {want}"
+            )));
+        }
+    }
+    let w = cam.width as usize;
+
+    // 1. Per-tile gradients, one slot per (tile, Gaussian) pair.
+    let mut pair_grads: Vec<Vec<SplatGrad>> =
+        state.views.iter().map(|v| vec![SplatGrad::default(); v.bins.num_pairs()]).collect();
+    let mut tasks = Vec::new();
+    for (vi, (v, pg)) in state.views.iter().zip(pair_grads.iter_mut()).enumerate() {
+        let outs = split_by_offsets(pg, &v.bins.offsets);
+        for ((t, job), out) in tile_jobs(cam, v, gs.colors).enumerate().zip(outs) {
+            let input = TileGradIn {
+                t_final: &v.t_final[t * AREA..(t + 1) * AREA],
+                last: &v.last[t * AREA..(t + 1) * AREA],
+                width: w,
+                grad_color: &grad_color[vi * hw * nc..(vi + 1) * hw * nc],
+                grad_depth: &grad_depth[vi * hw..(vi + 1) * hw],
+                grad_alpha: &grad_alpha[vi * hw..(vi + 1) * hw],
+                background: &state.background,
+            };
+            tasks.push((job, input, out));
+        }
+    }
+    let evaluations: u64 = tasks
+        .into_par_iter()
+        .map(|(job, input, out)| with_channels!(nc, backward_tile, &job, &input, out))
+        .sum();
+
+    // 2. Per-Gaussian sums of the pair gradients, in tile order.
+    let splat_grads: Vec<Vec<SplatGrad>> = state
+        .views
+        .iter()
+        .zip(&pair_grads)
+        .map(|(v, pg)| {
+            let (offsets, positions) = pairs_by_splat(&v.bins, &v.proj);
+            (0..n)
+                .into_par_iter()
+                .map(|i| {
+                    let mut g = SplatGrad::default();
+                    for &k in &positions[offsets[i]..offsets[i + 1]] {
+                        g += &pg[k];
+                    }
+                    g
+                })
+                .collect()
+        })
+        .collect();
+    drop(pair_grads);
+
+    // 3. Through the projection, per Gaussian (summed over views) and per view (summed over Gaussians).
+    let views: Vec<View> = viewmats.chunks_exact(16).map(View::from_row_major).collect();
+    let lims = cam.fov_limits();
+    let mut g = Gradients {
+        means: vec![0.0; n * 3],
+        log_scales: vec![0.0; n * 3],
+        quats: vec![0.0; n * 4],
+        opacities: vec![0.0; n],
+        colors: vec![0.0; n * nc],
+        viewmats: vec![0.0; b * 16],
+        grad2d_norm: splat_grads.iter().flat_map(|sg| sg.iter().map(|s| s.u.hypot(s.v))).collect(),
+        evaluations,
+    };
+    let partials: Vec<Vec<f64>> = g
+        .means
+        .par_chunks_mut(BLOCK * 3)
+        .zip(g.log_scales.par_chunks_mut(BLOCK * 3))
+        .zip(g.quats.par_chunks_mut(BLOCK * 4))
+        .zip(g.opacities.par_chunks_mut(BLOCK))
+        .zip(g.colors.par_chunks_mut(BLOCK * nc))
+        .enumerate()
+        .map(|(blk, ((((gm, gl), gq), go), gc))| {
+            let mut pose = vec![0.0f64; b * 12];
+            for j in 0..go.len() {
+                let i = blk * BLOCK + j;
+                for (vi, view) in views.iter().enumerate() {
+                    let sg = &splat_grads[vi][i];
+                    if state.views[vi].proj[i].radius == 0 {
+                        continue;
+                    }
+                    go[j] += sg.opacity;
+                    for ch in 0..nc {
+                        gc[j * nc + ch] += sg.color[ch];
+                    }
+                    if !sg.touches_geometry() {
+                        continue;
+                    }
+                    let pg = project_backward(&gs.params(i), view, cam, &lims, sg);
+                    accumulate(&mut gm[3 * j..3 * j + 3], &pg.mean);
+                    accumulate(&mut gl[3 * j..3 * j + 3], &pg.log_scale);
+                    accumulate(&mut gq[4 * j..4 * j + 4], &pg.quat);
+                    let acc = &mut pose[vi * 12..(vi + 1) * 12];
+                    for (a, v) in acc.iter_mut().zip(pg.view_r.iter().chain(&pg.view_t)) {
+                        *a += f64::from(*v);
+                    }
+                }
+            }
+            pose
+        })
+        .collect();
+    for vi in 0..b {
+        let mut sum = [0.0f64; 12];
+        for p in &partials {
+            for (s, v) in sum.iter_mut().zip(&p[vi * 12..(vi + 1) * 12]) {
+                *s += v;
+            }
+        }
+        let out = &mut g.viewmats[vi * 16..(vi + 1) * 16];
+        for r in 0..3 {
+            for c in 0..3 {
+                out[r * 4 + c] = sum[r * 3 + c] as f32;
+            }
+            out[r * 4 + 3] = sum[9 + r] as f32;
+        }
+    }
+    Ok(g)
+}
+
+fn accumulate(dst: &mut [f32], src: &[f32]) {
+    for (d, s) in dst.iter_mut().zip(src) {
+        *d += s;
+    }
+}

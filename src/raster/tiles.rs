@@ -1,0 +1,111 @@
+//! Tile binning: every splat goes to each 16×16 tile its extent box touches; within a tile the splats
+//! are ordered by camera depth, ties by index, so the order (and every result) is deterministic.
+
+use rayon::prelude::*;
+
+use super::project::Projected;
+
+/// Per-tile depth-sorted splat lists in one flat array (CSR layout).
+#[derive(Debug, Default)]
+pub(crate) struct Bins {
+    /// `ids[offsets[t]..offsets[t + 1]]` are the splats of tile `t`, front to back.
+    pub offsets: Vec<usize>,
+    pub ids: Vec<u32>,
+}
+
+impl Bins {
+    pub fn tile(&self, t: usize) -> &[u32] {
+        &self.ids[self.offsets[t]..self.offsets[t + 1]]
+    }
+
+    pub fn num_pairs(&self) -> usize {
+        self.ids.len()
+    }
+}
+
+/// Bin projected splats (an empty rectangle = culled) into `tiles_x × tiles_y` tiles.
+pub(crate) fn bin(proj: &[Projected], tiles_x: usize, tiles_y: usize) -> Bins {
+    let num_tiles = tiles_x * tiles_y;
+    let mut offsets = vec![0usize; num_tiles + 1];
+    for p in proj {
+        let r = &p.rect;
+        for ty in r.y0 as usize..r.y1 as usize {
+            for tx in r.x0 as usize..r.x1 as usize {
+                offsets[ty * tiles_x + tx + 1] += 1;
+            }
+        }
+    }
+    for t in 0..num_tiles {
+        offsets[t + 1] += offsets[t];
+    }
+    // Sort key: depth bits (positive floats order like their bits) above the index, so an unstable
+    // sort of the keys is a stable depth sort with ties broken by index.
+    let mut keys = vec![0u64; offsets[num_tiles]];
+    let mut cursor = offsets[..num_tiles].to_vec();
+    for (i, p) in proj.iter().enumerate() {
+        let (r, key) = (&p.rect, (u64::from(p.splat.z.to_bits()) << 32) | i as u64);
+        for ty in r.y0 as usize..r.y1 as usize {
+            for tx in r.x0 as usize..r.x1 as usize {
+                let c = &mut cursor[ty * tiles_x + tx];
+                keys[*c] = key;
+                *c += 1;
+            }
+        }
+    }
+    split_by_offsets(&mut keys, &offsets).into_par_iter().for_each(|tile| tile.sort_unstable());
+    let ids = keys.par_iter().map(|k| *k as u32).collect();
+    Bins { offsets, ids }
+}
+
+/// Split `data` into the disjoint mutable runs `data[offsets[i]..offsets[i + 1]]`.
+pub(crate) fn split_by_offsets<'a, T>(mut data: &'a mut [T], offsets: &[usize]) -> Vec<&'a mut [T]> {
+    let mut out = Vec::with_capacity(offsets.len().saturating_sub(1));
+    for w in offsets.windows(2) {
+        let (head, tail) = std::mem::take(&mut data).split_at_mut(w[1] - w[0]);
+        out.push(head);
+        data = tail;
+    }
+    out
+}
+
+/// For each splat, the positions of its (tile, splat) pairs in `bins.ids`, in tile order: the fixed
+/// order in which per-pair gradients are reduced per splat.
+pub(crate) fn pairs_by_splat(bins: &Bins, proj: &[Projected]) -> (Vec<usize>, Vec<usize>) {
+    let mut offsets = Vec::with_capacity(proj.len() + 1);
+    offsets.push(0usize);
+    for p in proj {
+        offsets.push(offsets.last().unwrap() + p.rect.area());
+    }
+    let mut cursor = offsets[..proj.len()].to_vec();
+    let mut positions = vec![0usize; bins.num_pairs()];
+    for (k, &g) in bins.ids.iter().enumerate() {
+        let c = &mut cursor[g as usize];
+        positions[*c] = k;
+        *c += 1;
+    }
+    (offsets, positions)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::raster::project::{Rect, Splat};
+
+    #[test]
+    fn depth_order_with_ties_by_index() {
+        let full = Rect { x0: 0, x1: 2, y0: 0, y1: 1 };
+        let left = Rect { x0: 0, x1: 1, y0: 0, y1: 1 };
+        let proj: Vec<Projected> =
+            [(full, 2.0), (left, 1.0), (Rect::default(), 0.5), (full, 1.0), (left, 3.0)]
+                .iter()
+                .map(|&(rect, z)| Projected { splat: Splat { z, ..Default::default() }, rect, radius: 1 })
+                .collect();
+        let bins = bin(&proj, 2, 1);
+        assert_eq!(bins.tile(0), &[1, 3, 0, 4]);
+        assert_eq!(bins.tile(1), &[3, 0]);
+        let (off, pos) = pairs_by_splat(&bins, &proj);
+        assert_eq!(off, vec![0, 2, 3, 3, 5, 6]);
+        // Splat 0 sits at position 2 (tile 0) and 5 (tile 1); splat 3 at 1 and 4.
+        assert_eq!(pos, vec![2, 5, 0, 1, 4, 3]);
+    }
+}
