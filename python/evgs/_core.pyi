@@ -57,3 +57,36 @@ def undistort_map(
 # --- raster (src/py/raster.rs) ---
 
 # --- sim (src/py/sim.rs) ---
+
+class EventSimulator:
+    """ESIM event simulator (src/sim/esim.rs) fed flattened float32 frames in time order."""
+
+    def __init__(
+        self,
+        width: int,
+        height: int,
+        *,
+        c_on: float = 0.2,
+        c_off: float = 0.2,
+        sigma_c: float = 0.0,
+        refractory_us: float = 0.0,
+        log_eps: float = 1e-3,
+        shot_rate_hz: float = 0.0,
+        shot_dark_level: float = 0.01,
+        leak_rate_hz: float = 0.0,
+        hot_pixel_fraction: float = 0.0,
+        hot_pixel_rate_hz: float = 0.0,
+        seed: int = 0,
+    ) -> None: ...
+    def push_frame(self, t_us: int, intensity: npt.NDArray[np.float32]) -> int: ...
+    def push_log_frame(self, t_us: int, log: npt.NDArray[np.float32]) -> int: ...
+    def log_change_quantile(
+        self, intensity: npt.NDArray[np.float32], q: float, min_level: float
+    ) -> float: ...
+    def take_events(self) -> dict: ...
+    @property
+    def num_events(self) -> int: ...
+    @property
+    def hot_pixel_count(self) -> int: ...
+    @property
+    def last_time(self) -> int | None: ...

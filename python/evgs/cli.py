@@ -14,6 +14,7 @@ COMMAND_MODULES = [
     "evgs.events.cli",
     "evgs.eval.cli",
     "evgs.slam.cli",
+    "evgs.sim.cli",
 ]
 
 
