@@ -78,17 +78,30 @@ def test_convergence_stops_on_plateau_only():
     assert not any(off.update(1.0) for _ in range(10))
 
 
+def reprojection_px(T: torch.Tensor, T_gt: torch.Tensor, points: torch.Tensor, fx: float) -> float:
+    """Mean image displacement (px) of ``points`` seen from ``T`` instead of ``T_gt``: the error the
+    event loss observes (lateral translation and rotation trade off in a narrow view)."""
+    uv = []
+    for pose in (T, T_gt):
+        T_cw = se3_inverse(pose.detach().double())
+        p = points.double() @ T_cw[:3, :3].T + T_cw[:3, 3]
+        uv.append(fx * p[:, :2] / p[:, 2:])
+    return float((uv[0] - uv[1]).norm(dim=1).mean())
+
+
 def test_tracking_recovers_a_perturbed_pose(synth):
     _, scene = synth
-    cfg = config("tracking.num_opti_steps=60", "economy.coarse_factor=1")
+    cfg = config("tracking.num_opti_steps=60", "economy.coarse_factor=1", "trajectory.pose_lr=3e-3")
     k = 4
     state = gt_state(synth, cfg, k + 1)
-    T_gt = scene.poses[k + 1]
-    start = torch.as_tensor(T_gt) @ se3_exp(torch.tensor([0.02, -0.015, 0.01, 0.01, -0.015, 0.01]).double())
-    before = pose_error(start, T_gt)
+    T_gt = torch.as_tensor(scene.poses[k + 1])
+    start = T_gt @ se3_exp(torch.tensor([0.05, -0.04, 0.03, 0.02, -0.03, 0.02]).double())
     track(state, k, pose=start)
-    after = pose_error(state.traj.knots()[k + 1], T_gt)
-    assert after[0] < 0.35 * before[0] and after[1] < 0.35 * before[1], (before, after)
+    est = state.traj.knots()[k + 1]
+    points, fx = scene.gaussians["means"].detach(), state.data.camera.fx
+    before, after = reprojection_px(start, T_gt, points, fx), reprojection_px(est, T_gt, points, fx)
+    assert before > 2.0 and after < 0.2 * before, (before, after)
+    assert pose_error(est, T_gt.numpy())[1] < 0.5 * pose_error(start, T_gt.numpy())[1]
     # The earlier knots are untouched.
     assert torch.equal(state.traj.knots()[: k + 1], torch.as_tensor(scene.poses[: k + 1]))
 

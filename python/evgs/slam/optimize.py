@@ -113,9 +113,11 @@ def prune_blockers(
     g = state.cfg.guards
     with torch.no_grad():
         recent = state.traj.knots()[list(spec.recent_knots)]
+    # The footprint test needs this step's radii, which no longer align after a refinement.
+    radii = step.out.radii if step.out.radii.shape[1] == len(state.gaussians) else None
     mask = blocker_mask(
         state.gaussians, recent, step.camera, near_margin=g.near_margin * state.cfg.gaussians.bounding_size,
-        radii=step.out.radii, max_footprint=g.max_footprint, footprint_min_opacity=g.footprint_min_opacity,
+        radii=radii, max_footprint=g.max_footprint, footprint_min_opacity=g.footprint_min_opacity,
     )  # fmt: skip
     n = int(mask.sum())
     if n and n < len(state.gaussians):
@@ -159,9 +161,9 @@ def run_stage(state: SlamState, spec: StageSpec, reporter: StageReporter | None 
                 strategy.accumulate(grad2d, step.out.radii, step.camera.width, step.camera.height)
             g_opt.step()
             clamp_colors_(state.gaussians, cfg.guards.max_color)
-            strategy.step(state.gaussians, g_opt, it, state.generator)
-            if it > 0 and it % cfg.strategy.refine_every == 0:
+            if it > 0 and it % cfg.strategy.refine_every == 0:  # before refining: radii still align
                 blockers += prune_blockers(state, spec, strategy, g_opt, step)
+            strategy.step(state.gaussians, g_opt, it, state.generator)
         loss = float(step.total.detach())
         n_events += win.n_events
         if reporter is not None:
@@ -172,7 +174,7 @@ def run_stage(state: SlamState, spec: StageSpec, reporter: StageReporter | None 
             else:
                 stopped = True
                 break
-    if spec.train_gaussians and step is not None and step.camera == data.camera:
+    if spec.train_gaussians and step is not None:
         blockers += prune_blockers(state, spec, strategy, g_opt, step)
     set_gaussians_trainable(state, True)
     traj.rebase()
