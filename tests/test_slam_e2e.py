@@ -93,13 +93,20 @@ class InterruptAt:
         pass
 
 
-def test_resume_after_interrupt_matches_uninterrupted(full_run: Path, seq_dir: Path, tmp_path: Path):
-    cfg = load_config(full_run / "config.toml")
+CHEAP = ["init.num_opti_steps_for_init=20", "tracking.num_opti_steps=6", "mapping.num_opti_steps_for_BA=8",
+         "global_ba.every=4", "global_ba.num_opti_steps=6", "global_ba.num_opti_steps_final=10",
+         "strategy.refine_every=3", "economy.patience=2", "economy.min_fraction=0"]  # fmt: skip
+
+
+def test_resume_after_interrupt_matches_uninterrupted(seq_dir: Path, tmp_path: Path):
+    """Few iterations, but every stage, refinement, early stopping and the coarse level take part."""
+    full = run_cli(seq_dir, tmp_path / "full", *CHEAP)
+    cfg = load_config(full / "config.toml")
     run = RunDir.create(tmp_path / "runs", "synth", cfg)
     state = new_state(cfg, EventData.from_sequence(Sequence.load(seq_dir), cfg.data))
     with pytest.raises(KeyboardInterrupt):
-        run_slam(state, run, InterruptAt("map", 6, 3))
+        run_slam(state, run, InterruptAt("map", 7, 3))
     assert not (run.root / "gaussians.ply").exists()
     assert main(["run", "--resume", str(run.root), "--quiet"]) == 0
-    assert (run.root / "traj_est.txt").read_bytes() == (full_run / "traj_est.txt").read_bytes()
-    assert (run.root / "gaussians.ply").read_bytes() == (full_run / "gaussians.ply").read_bytes()
+    assert (run.root / "traj_est.txt").read_bytes() == (full / "traj_est.txt").read_bytes()
+    assert (run.root / "gaussians.ply").read_bytes() == (full / "gaussians.ply").read_bytes()

@@ -66,7 +66,9 @@ def test_span_with_min_extends_sparse_chunks(synth):
     data = EventData.from_sequence(seq, config().data)
     s, e = data.chunks[3]
     need = int(e - s) + 1
-    data = EventData.from_sequence(seq, config(f"data.min_n_winsize={need}", f"data.max_n_winsize={need}").data)
+    data = EventData.from_sequence(
+        seq, config(f"data.min_n_winsize={need}", f"data.max_n_winsize={need}").data
+    )
     assert data.span_with_min(3, 4) == (data.chunks[2, 0], e)
 
 

@@ -82,6 +82,7 @@ class GlobalBAConfig:
 class GaussiansConfig:
     num_init: int
     bounding_size: float
+    init_depth: float
     init_opacity: float
     init_color: float
     background: float
@@ -134,6 +135,7 @@ class GuardsConfig:
 class EconomyConfig:
     patience: int
     min_rel_change: float
+    min_fraction: float
     coarse_factor: int
     coarse_fraction: float
 

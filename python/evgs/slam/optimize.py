@@ -169,9 +169,9 @@ def run_stage(state: SlamState, spec: StageSpec, reporter: StageReporter | None 
         if reporter is not None:
             reporter.advance(state, spec, it, loss, n_events, time.perf_counter() - t0)
         if stopper.update(loss):
-            if factor > 1:
+            if factor > 1:  # the coarse level has converged: go on at full resolution
                 coarse_end, stopper = it + 1, Convergence(econ.patience, econ.min_rel_change)
-            else:
+            elif it + 1 >= econ.min_fraction * spec.iterations:
                 stopped = True
                 break
     if spec.train_gaussians and step is not None:

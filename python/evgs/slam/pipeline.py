@@ -29,6 +29,8 @@ def new_state(cfg: Config, data: EventData) -> SlamState:
     """Random Gaussians in the bounding box and near-identity knots at the initialization frames."""
     generator = torch.Generator().manual_seed(cfg.seed)
     gaussians = Gaussians.from_config(cfg.gaussians, generator)
+    with torch.no_grad():  # the first camera is near the identity: its optical axis is +z
+        gaussians["means"][:, 2] += cfg.gaussians.init_depth
     m = min(cfg.init.num_frames, data.n_chunks)
     knots = random_knots(m + 1, cfg.trajectory.init_pose_noise, generator)
     traj = Trajectory(data.frames_us[: m + 1], knots, cfg.trajectory.interpolation)

@@ -78,6 +78,11 @@ def add_gaussians_from_newest_view(state: SlamState, k: int) -> int:
         return 0
     s, e = data.chunks[k]
     events = data.frames_of(s[None], e[None])[0]
+    uncovered = (out.alpha[0] < cfg.mapping.new_gaussian_alpha) & (
+        events.abs() > cfg.strategy.event_threshold
+    )
+    if not bool(uncovered.any()):
+        return 0
     with torch.no_grad():
         pose = state.traj.knots()[k + 1]
     extra = gaussians_from_view(
