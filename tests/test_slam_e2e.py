@@ -24,7 +24,8 @@ from evgs.slam.run_dir import RunDir  # noqa: E402
 from evgs.slam.windows import EventData  # noqa: E402
 from slam_synth import make_sequence  # noqa: E402
 
-SETS = ["data.event_contrast=0.2", "gaussians.bounding_size=1.5", "output.diagnostics_every=40"]
+SETS = ["data.event_contrast=0.2", "gaussians.bounding_size=1.5", "gaussians.init_depth=2.0",
+        "output.diagnostics_every=100"]  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -110,3 +111,22 @@ def test_resume_after_interrupt_matches_uninterrupted(seq_dir: Path, tmp_path: P
     assert main(["run", "--resume", str(run.root), "--quiet"]) == 0
     assert (run.root / "traj_est.txt").read_bytes() == (full / "traj_est.txt").read_bytes()
     assert (run.root / "gaussians.ply").read_bytes() == (full / "gaussians.ply").read_bytes()
+
+
+def test_missing_seenic_sequence_says_what_to_download(tmp_path: Path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", "--seq", "seenic/orbit_ambient", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "7370076" in err and "hubble-orbit-slow-ambient" in err
+    assert "evgs import seenic" in err and "data/seenic/orbit_ambient" in err
+    assert not (tmp_path / "runs").exists()
+
+
+def test_config_follows_the_sequence_name():
+    from evgs.config import CONFIG_DIR, DEFAULT_CONFIG
+    from evgs.slam.cli import config_for
+
+    assert config_for("seenic/orbit_ambient", None) == CONFIG_DIR / "seenic" / "orbit_ambient.toml"
+    assert config_for("seenic/orbit_slow", None) == CONFIG_DIR / "seenic" / "_dataset.toml"
+    assert config_for("nowhere/x", None) == DEFAULT_CONFIG
+    assert config_for("seenic/orbit_ambient", "my.toml") == Path("my.toml")
