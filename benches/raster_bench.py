@@ -3,9 +3,9 @@ per second for the Rust rasterizer, 1 and 2 threads, beside the dense float32 to
 
 A "pixel–Gaussian evaluation" is one (pixel, Gaussian) pair whose alpha the rasterizer computed: for
 each tile and each splat in its depth-sorted list until the tile's pixels all stopped, the in-image
-pixels of the 16-pixel tile rows within the splat's extent that still had a live pixel. The dense
-reference evaluates every Gaussian at every pixel; its throughput is quoted per the same Rust count
-(i.e. useful work per second) so the columns compare wall time for the same image.
+pixels of the 8-pixel row segments (one AVX2 register) that intersect the splat's extent and still had
+a live pixel (``raster::Forward::evaluations``). The dense reference evaluates every Gaussian at every
+pixel; it is compared by wall time for the same image (the speed-up column).
 
 Run: ``make dev && PYTHONPATH=python:tests $VENV/bin/python benches/raster_bench.py [--quick]``
 """
@@ -75,13 +75,15 @@ COUNTS = [10_000, 30_000, 100_000, 1_000_000]
 REF_SUBSET = 100  # Gaussians the dense reference really renders; its cost is linear in N
 
 
-def _median_ms(f, reps: int) -> float:
-    times = []
+def _median_ms(f, reps: int) -> tuple[float, float]:
+    """Median wall and CPU (all threads of the process) milliseconds of ``f()``."""
+    wall, cpu = [], []
     for _ in range(reps):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         f()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * float(np.median(times))
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return 1e3 * float(np.median(wall)), 1e3 * float(np.median(cpu))
 
 
 def measure_rust(quick: bool) -> list[dict]:
@@ -99,14 +101,15 @@ def measure_rust(quick: bool) -> list[dict]:
             args.append(np.zeros(1, np.float32))
             reps = 3 if n >= 1_000_000 else 7
             out = _core.rasterize_forward(*args)  # warm-up
-            fwd_ms = _median_ms(lambda a=args: _core.rasterize_forward(*a), reps)
+            fwd_ms, fwd_cpu = _median_ms(lambda a=args: _core.rasterize_forward(*a), reps)
             rng = np.random.default_rng(1)
             up = [rng.normal(size=w * h).astype(np.float32) for _ in range(3)]
             back = lambda o=out, a=args, u=up: _core.rasterize_backward(o[4], *a[:7], *u)  # noqa: E731
             bwd_evals = back()[-1]
-            bwd_ms = _median_ms(back, reps)
+            bwd_ms, bwd_cpu = _median_ms(back, reps)
             rows.append(
                 {"n": n, "w": w, "h": h, "fwd_ms": fwd_ms, "bwd_ms": bwd_ms,
+                 "fwd_cpu": fwd_cpu, "bwd_cpu": bwd_cpu,
                  "fwd_evals": out[4].forward_evaluations, "bwd_evals": int(bwd_evals),
                  "coverage": float(out[2].mean())}
             )  # fmt: skip
@@ -157,11 +160,13 @@ def main() -> None:
     ref = {(w, h): measure_reference(w, h) for w, h in SIZES}
 
     print(f"CPU: {cpu_model()}, {os.cpu_count()} logical CPUs; load average {os.getloadavg()[0]:.1f}")
-    print("evals = pixel–Gaussian pairs evaluated (see module docstring); G/s at 2 threads;")
+    print("evals = pixel–Gaussian pairs evaluated (see module docstring); G/s = evals per wall second at")
+    print("2 threads; 'cpu' = CPU ms of the 1-thread run (meaningful when the machine is shared);")
     print(f"dense torch float32 reference: extrapolated linearly from {REF_SUBSET} Gaussians\n")
     head = (
-        f"{'image':>8} {'N':>8} {'cover':>5} {'fwd evals':>9} | {'fwd ms 1T':>9} {'2T':>7} {'G/s':>5} | "
-        f"{'bwd ms 1T':>9} {'2T':>7} {'G/s':>5} | {'dense fwd ms':>12} {'bwd ms':>9} | {'speed-up':>12}"
+        f"{'image':>8} {'N':>8} {'cover':>5} {'fwd evals':>9} | {'fwd ms 1T':>9} {'cpu':>7} {'2T':>7} "
+        f"{'G/s':>5} | {'bwd ms 1T':>9} {'cpu':>7} {'2T':>7} {'G/s':>5} | "
+        f"{'dense fwd ms':>12} {'bwd ms':>9} | {'speed-up':>12}"
     )
     print(head)
     print("-" * len(head))
@@ -171,8 +176,10 @@ def main() -> None:
         dense_f, dense_b = rf * scale, rb * scale
         print(
             f"{r2['w']:>4}x{r2['h']:<3} {r2['n']:>8} {r2['coverage']:>5.2f} {r2['fwd_evals'] / 1e6:>8.1f}M | "
-            f"{r1['fwd_ms']:>9.2f} {r2['fwd_ms']:>7.2f} {r2['fwd_evals'] / r2['fwd_ms'] / 1e6:>5.2f} | "
-            f"{r1['bwd_ms']:>9.2f} {r2['bwd_ms']:>7.2f} {r2['bwd_evals'] / r2['bwd_ms'] / 1e6:>5.2f} | "
+            f"{r1['fwd_ms']:>9.2f} {r1['fwd_cpu']:>7.2f} {r2['fwd_ms']:>7.2f} "
+            f"{r2['fwd_evals'] / r2['fwd_ms'] / 1e6:>5.2f} | "
+            f"{r1['bwd_ms']:>9.2f} {r1['bwd_cpu']:>7.2f} {r2['bwd_ms']:>7.2f} "
+            f"{r2['bwd_evals'] / r2['bwd_ms'] / 1e6:>5.2f} | "
             f"{dense_f:>12.0f} {dense_b:>9.0f} | "
             f"{dense_f / r2['fwd_ms']:>5.0f}x/{dense_b / r2['bwd_ms']:>4.0f}x"
         )

@@ -3,7 +3,7 @@
 //! the sum over the tile's pixels in a fixed lane order, so no two threads ever write the same memory.
 
 use super::camera::TILE;
-use super::forward::{alpha_at, lane_centres, RowTerms, TileJob, ALPHA_MAX, LANES, SEGS};
+use super::forward::{alpha_at, lane_centres, RowTerms, TileJob, ALPHA_MAX, BATCH, LANES, SEGS};
 use super::project::{Splat, SplatGrad, ALPHA_MIN};
 
 type Lanes = [f32; LANES];
@@ -84,24 +84,31 @@ pub(crate) fn backward_tile<const NC: usize>(
     let k_end = segs.iter().flatten().map(|s| s.max_last).max().unwrap_or(0) as usize;
     out.fill(SplatGrad::default());
     let mut evaluations = 0u64;
-    for k in (0..k_end).rev() {
-        let g = job.ids[k] as usize;
-        let s = &job.splats[g].splat;
-        let Some(((r0, r1), (h0, h1))) = job.span(s) else { continue };
-        let col: [f32; NC] = std::array::from_fn(|ch| job.colors[g * NC + ch]);
-        let mut acc = LaneAcc::<NC>::new();
-        for (r, row_segs) in segs.iter_mut().enumerate().take(r1 + 1).skip(r0) {
-            let row = RowTerms::new(s, (job.y0 + r) as f32 + 0.5);
-            for h in h0..=h1 {
-                let seg = &mut row_segs[h];
-                if seg.max_last as usize <= k {
-                    continue;
+    let (mut splats, mut colors) = (Vec::with_capacity(BATCH), Vec::with_capacity(BATCH));
+    let mut end = k_end;
+    while end > 0 {
+        let start = end.saturating_sub(BATCH);
+        job.gather::<NC>(start..end, &mut splats, &mut colors);
+        for (j, (&s, &col)) in splats.iter().zip(&colors).enumerate().rev() {
+            let k = start + j;
+            // (Copies: locals that provably do not alias the tile state keep the lane loop vectorised.)
+            let Some(((r0, r1), (h0, h1))) = job.span(&s) else { continue };
+            let mut acc = LaneAcc::<NC>::new();
+            for (r, row_segs) in segs.iter_mut().enumerate().take(r1 + 1).skip(r0) {
+                let row = RowTerms::new(&s, (job.y0 + r) as f32 + 0.5);
+                let Some((h0, h1)) = job.row_segs(&s, &row, (h0, h1)) else { continue };
+                for h in h0..=h1 {
+                    let seg = &mut row_segs[h];
+                    if seg.max_last as usize <= k {
+                        continue;
+                    }
+                    evaluations += job.seg_lanes(h) as u64;
+                    backward_seg::<NC>(&s, &row, &col, k as u32, &px[h], seg, &mut acc);
                 }
-                evaluations += job.seg_lanes(h) as u64;
-                backward_seg::<NC>(s, &row, &col, k as u32, &px[h], seg, &mut acc);
             }
+            out[k] = acc.reduce();
         }
-        out[k] = acc.reduce();
+        end = start;
     }
     evaluations
 }

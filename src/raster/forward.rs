@@ -40,7 +40,8 @@ impl RowTerms {
 pub(crate) fn alpha_at(s: &Splat, row: &RowTerms, dx: f32) -> (f32, f32, f32) {
     let sigma = dx * (row.half_a * dx + row.b_dy) + row.half_c_dy2;
     let g = fastmath::exp(-sigma);
-    (sigma, g, (s.opacity * g).min(ALPHA_MAX))
+    let og = s.opacity * g;
+    (sigma, g, if og < ALPHA_MAX { og } else { ALPHA_MAX })
 }
 
 /// Pixel-centre x coordinates of a tile's segments.
@@ -70,13 +71,54 @@ pub(crate) struct TileJob<'a> {
     pub colors: &'a [f32],
 }
 
+/// Splats handled per gather: the splats of a tile list sit at random places in memory, and copying a
+/// batch of them in one tight loop lets the loads overlap instead of stalling the compositing loop.
+pub(crate) const BATCH: usize = 64;
+
 impl TileJob<'_> {
+    /// Copy the splats and colours of tile-list positions `range` into `splats` and `colors`.
+    #[inline]
+    pub fn gather<const NC: usize>(
+        &self,
+        range: std::ops::Range<usize>,
+        splats: &mut Vec<Splat>,
+        colors: &mut Vec<[f32; NC]>,
+    ) {
+        splats.clear();
+        colors.clear();
+        for &g in &self.ids[range] {
+            let g = g as usize;
+            splats.push(self.splats[g].splat);
+            colors.push(std::array::from_fn(|ch| self.colors[g * NC + ch]));
+        }
+    }
+
     /// The tile rows and row segments a splat's extent reaches.
     #[inline(always)]
     pub fn span(&self, s: &Splat) -> Option<((usize, usize), (usize, usize))> {
         let rows = clip_span(s.row_lo, s.row_hi, self.y0, 1, self.rows)?;
         let segs = clip_span(s.col_lo, s.col_hi, self.x0, LANES, SEGS)?;
         Some((rows, segs))
+    }
+
+    /// The segments of the row described by `row`, within `segs`, where the splat can reach alpha ≥
+    /// 1/255: the chord `σ(dx) ≤ tau` of the ellipse, widened by a pixel on each side; `None` if the
+    /// row misses it. Cheaper than evaluating a segment, and it trims the square extent to the ellipse.
+    #[inline(always)]
+    pub fn row_segs(&self, s: &Splat, row: &RowTerms, segs: (usize, usize)) -> Option<(usize, usize)> {
+        // ½a·dx² + b·dy·dx + ½c·dy² − tau ≤ 0, a > 0.
+        let disc = row.b_dy * row.b_dy - s.a * (2.0 * (row.half_c_dy2 - s.tau));
+        if disc.is_nan() || disc < 0.0 {
+            return None;
+        }
+        let root = disc.sqrt();
+        let (dx_lo, dx_hi) = ((-row.b_dy - root) / s.a, (-row.b_dy + root) / s.a);
+        // Column j has dx = u − (j + ½).
+        let first = (s.u - 0.5 - dx_hi).floor().max(-2.0) as i32 - 1;
+        let last = (s.u - 0.5 - dx_lo).ceil().min(1e9) as i32 + 1;
+        let (h0, h1) = clip_span(first, last, self.x0, LANES, SEGS)?;
+        let (h0, h1) = (h0.max(segs.0), h1.min(segs.1));
+        (h0 <= h1).then_some((h0, h1))
     }
 
     /// In-image lanes of segment `h`.
@@ -129,28 +171,36 @@ pub(crate) fn render_tile<const NC: usize>(job: &TileJob, out: TileOut) -> u64 {
         }
     }
     let mut evaluations = 0u64;
-    for (k, &g) in job.ids.iter().enumerate() {
-        if alive_count == 0 {
-            break;
-        }
-        let s = &job.splats[g as usize].splat;
-        let Some(((r0, r1), (h0, h1))) = job.span(s) else { continue };
-        let col: [f32; NC] = std::array::from_fn(|ch| job.colors[g as usize * NC + ch]);
-        for r in r0..=r1 {
-            let row = RowTerms::new(s, (job.y0 + r) as f32 + 0.5);
-            for h in h0..=h1 {
-                if !alive[r][h] {
-                    continue;
-                }
-                evaluations += job.seg_lanes(h) as u64;
-                let seg = &mut segs[r][h];
-                composite_seg::<NC>(s, &row, &col, k as u32 + 1, &px[h], seg);
-                if seg.done.iter().all(|&d| d != 0) {
-                    alive[r][h] = false;
-                    alive_count -= 1;
+    let (mut splats, mut colors) = (Vec::with_capacity(BATCH), Vec::with_capacity(BATCH));
+    let mut start = 0;
+    while start < job.ids.len() && alive_count > 0 {
+        let end = job.ids.len().min(start + BATCH);
+        job.gather::<NC>(start..end, &mut splats, &mut colors);
+        for (j, (&s, &col)) in splats.iter().zip(&colors).enumerate() {
+            if alive_count == 0 {
+                break;
+            }
+            // (Copies: locals that provably do not alias the tile state keep the lane loop vectorised.)
+            let Some(((r0, r1), (h0, h1))) = job.span(&s) else { continue };
+            let k1 = (start + j) as u32 + 1;
+            for r in r0..=r1 {
+                let row = RowTerms::new(&s, (job.y0 + r) as f32 + 0.5);
+                let Some((h0, h1)) = job.row_segs(&s, &row, (h0, h1)) else { continue };
+                for h in h0..=h1 {
+                    if !alive[r][h] {
+                        continue;
+                    }
+                    evaluations += job.seg_lanes(h) as u64;
+                    let seg = &mut segs[r][h];
+                    composite_seg::<NC>(&s, &row, &col, k1, &px[h], seg);
+                    if seg.done.iter().all(|&d| d != 0) {
+                        alive[r][h] = false;
+                        alive_count -= 1;
+                    }
                 }
             }
         }
+        start = end;
     }
     for (r, row) in segs.iter().enumerate() {
         for (h, seg) in row.iter().enumerate() {

@@ -126,8 +126,9 @@ pub struct Forward {
 
 impl Forward {
     /// Pixel–Gaussian evaluations: (pixel, Gaussian) pairs whose alpha was computed, i.e. for every
-    /// tile and every splat in its list until the tile stopped, the in-image pixels of the 16-pixel
-    /// tile rows within the splat's extent that still had a live pixel.
+    /// tile and every splat in its list until the tile stopped, the in-image pixels of the 8-pixel
+    /// row segments that intersect the splat's extent and still had a live pixel. (The backward pass
+    /// counts the same way, over segments with a pixel the splat was composited into or in front of.)
     pub fn evaluations(&self) -> u64 {
         self.state.forward_evaluations
     }
@@ -197,7 +198,7 @@ pub fn forward(gs: &Gaussians, viewmats: &[f32], cam: &Camera, background: &[f32
     }
     let lims = cam.fov_limits();
     let nt = cam.num_tiles();
-    let views: Vec<ViewState> = viewmats
+    let mut views: Vec<ViewState> = viewmats
         .chunks_exact(16)
         .map(|m| {
             let view = View::from_row_major(m);
@@ -227,8 +228,6 @@ pub fn forward(gs: &Gaussians, viewmats: &[f32], cam: &Camera, background: &[f32
         .zip(outs.into_par_iter())
         .map(|(job, out)| with_channels!(nc, render_tile, job, out))
         .sum();
-    drop(jobs);
-    let mut views = views;
     for ((v, t), l) in views.iter_mut().zip(t_final).zip(last) {
         v.t_final = t;
         v.last = l;
@@ -419,5 +418,123 @@ pub fn backward(
 fn accumulate(dst: &mut [f32], src: &[f32]) {
     for (d, s) in dst.iter_mut().zip(src) {
         *d += s;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const CAM: Camera =
+        Camera { width: 37, height: 21, fx: 30.0, fy: 30.0, cx: 18.0, cy: 10.0, near: 0.01, far: 100.0 };
+    const VIEWS: [f32; 32] = [
+        1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, //
+        0.995, 0.0, 0.0998, 0.1, 0.0, 1.0, 0.0, -0.05, -0.0998, 0.0, 0.995, 0.2, 0.0, 0.0, 0.0, 1.0,
+    ];
+
+    struct Scene {
+        means: Vec<f32>,
+        log_scales: Vec<f32>,
+        quats: Vec<f32>,
+        opacities: Vec<f32>,
+        colors: Vec<f32>,
+    }
+
+    impl Scene {
+        /// A deterministic pseudo-random cloud in front of the camera, two colour channels.
+        fn new(n: usize) -> Self {
+            let mut state = 1u32;
+            let mut r = move || {
+                state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                (state >> 8) as f32 / (1u32 << 24) as f32
+            };
+            let mut s =
+                Scene { means: vec![], log_scales: vec![], quats: vec![], opacities: vec![], colors: vec![] };
+            for _ in 0..n {
+                s.means.extend([r() - 0.5, 0.6 * (r() - 0.5), 2.0 + r()]);
+                s.log_scales.extend([-3.5 + r(), -3.5 + r(), -3.5 + r()]);
+                s.quats.extend([r() - 0.5, r() - 0.5, r() - 0.5, r() - 0.5]);
+                s.opacities.push(0.2 + 0.7 * r());
+                s.colors.extend([r(), r()]);
+            }
+            s
+        }
+
+        fn gaussians(&self) -> Gaussians<'_> {
+            Gaussians {
+                means: &self.means,
+                log_scales: &self.log_scales,
+                quats: &self.quats,
+                opacities: &self.opacities,
+                colors: &self.colors,
+                channels: 2,
+            }
+        }
+    }
+
+    /// Every output bit of a forward + backward pass.
+    fn run_bits(gs: &Gaussians) -> Vec<u32> {
+        let f = forward(gs, &VIEWS, &CAM, &[0.1, 0.2]).unwrap();
+        let up: Vec<f32> = (0..f.color.len()).map(|i| ((i * 37) % 11) as f32 / 5.0 - 1.0).collect();
+        let hw = f.depth.len();
+        let g = backward(gs, &VIEWS, &f.state, &up, &up[..hw], &up[hw..2 * hw]).unwrap();
+        [
+            &f.color,
+            &f.depth,
+            &f.alpha,
+            &g.means,
+            &g.log_scales,
+            &g.quats,
+            &g.opacities,
+            &g.colors,
+            &g.viewmats,
+            &g.grad2d_norm,
+        ]
+        .iter()
+        .flat_map(|v| v.iter().map(|x| x.to_bits()))
+        .collect()
+    }
+
+    #[test]
+    fn identical_bits_for_any_thread_count() {
+        let scene = Scene::new(600);
+        let gs = scene.gaussians();
+        let with = |threads| {
+            rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap().install(|| run_bits(&gs))
+        };
+        let one = with(1);
+        assert!(one.iter().any(|&b| b != 0));
+        assert_eq!(one, with(2));
+        assert_eq!(one, with(3));
+    }
+
+    #[test]
+    fn empty_scene_shows_the_background() {
+        let scene = Scene::new(0);
+        let f = forward(&scene.gaussians(), &VIEWS, &CAM, &[0.1, 0.2]).unwrap();
+        assert!(f.color.chunks(2).all(|c| c == [0.1, 0.2]));
+        assert!(f.alpha.iter().all(|&a| a == 0.0) && f.radii.is_empty() && f.evaluations() == 0);
+    }
+
+    #[test]
+    fn bad_inputs_are_reported() {
+        let scene = Scene::new(3);
+        let mut gs = scene.gaussians();
+        let err = |gs: &Gaussians, views: &[f32], bg: &[f32]| match forward(gs, views, &CAM, bg) {
+            Err(Error::Invalid(m)) => m,
+            _ => panic!("expected an error"),
+        };
+        assert!(err(&gs, &VIEWS[..15], &[0.0, 0.0]).contains("viewmats"));
+        assert!(err(&gs, &VIEWS, &[0.0]).contains("background"));
+        gs.quats = &scene.quats[..8];
+        assert!(err(&gs, &VIEWS, &[0.0, 0.0]).contains("quats"));
+        gs = scene.gaussians();
+        gs.channels = 4;
+        assert!(err(&gs, &VIEWS, &[0.0; 4]).contains("colors"));
+        let f = forward(&scene.gaussians(), &VIEWS, &CAM, &[0.0, 0.0]).unwrap();
+        let up = vec![0.0; 5];
+        assert!(
+            matches!(backward(&scene.gaussians(), &VIEWS, &f.state, &up, &up, &up), Err(Error::Invalid(m)) if m.contains("grad_color"))
+        );
     }
 }

@@ -14,6 +14,8 @@ pub const ALPHA_MIN: f32 = 1.0 / 255.0;
 const DILATION: f32 = 0.3;
 /// Cap on the extent in standard deviations.
 const MAX_EXTENT: f32 = 3.33;
+/// Slack on the per-row reach test (1 % in G), so that rounding can only widen the pixels evaluated.
+const TAU_MARGIN: f32 = 0.01;
 
 /// A projected Gaussian: everything the per-pixel loops read, packed in one cache line.
 #[derive(Clone, Copy, Debug, Default)]
@@ -26,6 +28,8 @@ pub(crate) struct Splat {
     pub c: f32,
     pub opacity: f32,
     pub z: f32,
+    /// `ln(255·o)` plus a small margin: pixels with `σ > tau` cannot reach alpha ≥ 1/255.
+    pub tau: f32,
     /// Pixel rows and columns that can reach alpha ≥ 1/255 (inclusive, conservative by up to one).
     pub row_lo: i32,
     pub row_hi: i32,
@@ -34,7 +38,9 @@ pub(crate) struct Splat {
 }
 
 /// One Gaussian projected into one view; a culled one has radius 0 and an empty rectangle.
+/// Exactly one cache line: the tile loops read these in depth order, i.e. at random addresses.
 #[derive(Clone, Copy, Debug, Default)]
+#[repr(C, align(64))]
 pub(crate) struct Projected {
     pub splat: Splat,
     pub rect: Rect,
@@ -186,6 +192,7 @@ pub(crate) fn project(g: &Params, view: &View, cam: &Camera, lims: &[f32; 4]) ->
         c: s[(0, 0)] * inv_det,
         opacity: g.opacity,
         z: p.z,
+        tau: (g.opacity / ALPHA_MIN).ln() + TAU_MARGIN,
         row_lo: (v - ry - 0.5).floor().max(-1.0) as i32,
         row_hi: (v + ry - 0.5).ceil().min(h) as i32,
         col_lo: (u - rx - 0.5).floor().max(-1.0) as i32,
