@@ -11,6 +11,8 @@ enough to hold every distorted pixel's undistorted position is rendered and resa
 
 from __future__ import annotations
 
+import contextlib
+
 import cv2
 import moderngl
 import numpy as np
@@ -22,6 +24,15 @@ from evgs.sim.materials import material_table
 from evgs.sim.scene import Scene
 
 MAX_FILLS = 4
+
+
+def _load_triton_before_mesa() -> None:
+    """Mesa's llvmpipe loads its LLVM into the process; triton (imported lazily by torch, e.g. when an
+    optimizer is built) carries its own LLVM and segfaults if it loads after Mesa's. Loaded first, both
+    coexist — this keeps simulate-then-optimise in one process (``evgs run``, the tests) working."""
+    with contextlib.suppress(ImportError):
+        import triton  # noqa: F401
+
 
 _VERTEX = """
 #version 330
@@ -177,6 +188,7 @@ class Renderer:
             camera, *maps = distortion_map(camera)
             self.remap = (maps[0], maps[1])
         self.canvas = camera
+        _load_triton_before_mesa()
         self.ctx = moderngl.create_standalone_context(backend="egl")
         ctx = self.ctx
         samples = min(msaa, ctx.max_samples) if msaa > 1 else 0
