@@ -42,7 +42,10 @@ def add_at_frames(ev: EventArray, starts, ends, c_on: float, c_off: float, f: in
         pos = ev.p[s:e] > 0
         np.add.at(on, idx[pos], 1)
         np.add.at(off, idx[~pos], 1)
-        frame = np.float32(c_on) * on.astype(np.float32) - np.float32(c_off) * off.astype(np.float32)
+        if c_on == c_off:  # one C: the frame is C·Σp rounded once
+            frame = np.float32(c_on) * (on - off).astype(np.float32)
+        else:
+            frame = np.float32(c_on) * on.astype(np.float32) - np.float32(c_off) * off.astype(np.float32)
         out[b] = frame.reshape(h, w)
     return out
 
@@ -163,14 +166,42 @@ def test_reference_mode_follows_linspace():
 def test_accumulate_matches_np_add_at(f):
     ev = random_events(60_000, 45, 31, 1)
     starts, ends = WindowSampler(len(ev), 1, 20_000, seed=5).sample(6)
-    starts, ends = np.append(starts, [0, 17]), np.append(ends, [len(ev), 17])  # whole stream, empty
+    # whole stream, a small window, an empty one
+    starts, ends = np.append(starts, [0, 500, 17]), np.append(ends, [len(ev), 600, 17])
     frames = accumulate(ev, starts, ends, c_on=0.3, c_off=0.1, downsample=f)
-    assert frames.dtype == np.float32 and frames.shape == (8, -(-31 // f), -(-45 // f))
+    assert frames.dtype == np.float32 and frames.shape == (9, -(-31 // f), -(-45 // f))
     np.testing.assert_array_equal(frames, add_at_frames(ev, starts, ends, 0.3, 0.1, f))
     assert np.all(frames[-1] == 0)
     # c_off defaults to c_on: the paper's single symmetric C.
     sym = accumulate(ev, starts[:2], ends[:2], c_on=0.2, downsample=f)
     np.testing.assert_array_equal(sym, add_at_frames(ev, starts[:2], ends[:2], 0.2, 0.2, f))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    n=st.integers(0, 3000),
+    width=st.integers(1, 40),
+    height=st.integers(1, 40),
+    f=st.sampled_from([1, 2, 4]),
+    c=st.sampled_from([(0.1, 0.1), (1.0, 1.0), (0.3, 0.05), (0.0, 2.5)]),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_accumulate_property(n, width, height, f, c, seed):
+    ev = random_events(n, width, height, seed)
+    rng = np.random.default_rng(seed)
+    bounds = np.sort(rng.integers(0, n + 1, (5, 2)), axis=1)
+    starts, ends = bounds[:, 0], bounds[:, 1]
+    got = accumulate(ev, starts, ends, c_on=c[0], c_off=c[1], downsample=f)
+    np.testing.assert_array_equal(got, add_at_frames(ev, starts, ends, c[0], c[1], f))
+
+
+def test_sampling_a_sliding_window_of_chunks():
+    ev = random_events(20_000, 8, 8, 6)
+    ranges = chunk_ranges(ev.t, np.linspace(0, ev.t[-1], 11).astype(np.int64))
+    lo, hi = ranges[3, 0], ranges[6, 1]  # chunks 3..6
+    s, e = WindowSampler((lo, hi), 100, 1500, seed=2).sample(500)
+    assert np.all((s >= lo) & (e <= hi) & (e - s >= 100) & (e - s <= 1500))
+    assert np.all(ev.t[s] >= np.linspace(0, ev.t[-1], 11).astype(np.int64)[3])
 
 
 def test_accumulate_rejects_bad_input():
@@ -267,10 +298,11 @@ from evgs.events.arrays import EventArray
 from evgs.events.frames import UndistortMap, WindowSampler, accumulate
 
 rng = np.random.default_rng(0)
-n = 2_500_000  # windows over 1 M events are split into parts counted in parallel
+n = 2_500_000
 ev = EventArray(np.arange(n, dtype=np.int64), rng.integers(0, 64, n).astype(np.uint16),
                 rng.integers(0, 48, n).astype(np.uint16), rng.choice(np.array([-1, 1], np.int8), n), 64, 48)
-s, e = WindowSampler(n, 1000, 2_400_000, seed=11).sample(6)
+# 3 windows of > 1 M events: one thread counts each whole, two threads split them into parts.
+s, e = WindowSampler(n, 1_100_000, 2_400_000, seed=11).sample(3)
 cam = Camera(64, 48, 60.0, 60.0, 31.5, 23.5, (-0.25, 0.05, 0.0, 0.0, 0.0))
 h = hashlib.sha256()
 for arr in (s, e, accumulate(ev, s, e, c_on=0.3, c_off=0.2),
@@ -292,3 +324,14 @@ def test_results_identical_for_one_and_two_threads():
         digests.append(out.stdout.strip())
     assert len(digests[0]) == 64 and digests[0] == digests[1]
     assert hashlib.sha256(b"").hexdigest() not in digests
+
+
+def test_out_buffer_is_overwritten_and_returned():
+    ev = random_events(30_000, 40, 30, 4)
+    starts, ends = np.array([0, 100, 29_000]), np.array([30_000, 130, 29_010])
+    out = np.full((3, 15, 20), np.nan, np.float32)
+    got = accumulate(ev, starts, ends, c_on=0.5, downsample=2, out=out)
+    assert got is out
+    np.testing.assert_array_equal(out, add_at_frames(ev, starts, ends, 0.5, 0.5, 2))
+    with pytest.raises(ValueError, match=r"shape \(3, 15, 20\)"):
+        accumulate(ev, starts, ends, out=np.zeros((3, 30, 40), np.float32), downsample=2)

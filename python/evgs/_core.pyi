@@ -49,6 +49,7 @@ def accumulate_frames(
     c_off: float,
     downsample_log2: int = 0,
     undistort_map: npt.NDArray[np.float32] | None = None,
+    out: npt.NDArray[np.float32] | None = None,
 ) -> tuple[npt.NDArray[np.float32], int, int, npt.NDArray[np.uint64]]: ...
 def undistort_map(
     width: int, height: int, fx: float, fy: float, cx: float, cy: float, distortion: list[float]

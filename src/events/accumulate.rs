@@ -1,9 +1,11 @@
 //! Event frames: `E(x, y) = C_on·n_on − C_off·n_off` over event index ranges, batched.
 //!
-//! Each window is first reduced to integer per-pixel `(n_on, n_off)` counts, then turned into floats
-//! once per pixel. Integer counts make the result exact and independent of how the work is split: a
-//! large window is cut into fixed-size event sub-ranges counted in parallel and summed in order, and
-//! the frame is bitwise identical for any thread count.
+//! Each window is first reduced to integer per-pixel counts, then turned into floats once per pixel:
+//! `n_on − n_off` when there is one C (the paper's case; the frame is `C·Σp` rounded once), the pair
+//! `(n_on, n_off)` otherwise. Integer counts make the result exact and independent of how the work is split:
+//! windows run in parallel, and when there are fewer windows than threads to keep busy, a large window
+//! is cut into fixed-size event sub-ranges counted in parallel and summed in order. Integer sums do not
+//! depend on grouping, so the frame is bitwise identical for any thread count (tests compare 1 and 2).
 //!
 //! Undistortion (optional) uses a per-pixel map (see [`super::undistort`]): counts are kept at the raw
 //! sensor pixels and each pixel's value `C_on·n_on − C_off·n_off` is then splatted bilinearly at its
@@ -53,6 +55,12 @@ pub struct Frames {
     pub dropped: Vec<u64>,
 }
 
+/// Output frame size `(width, height)` for a `width × height` sensor: `ceil(size / 2^downsample_log2)`.
+pub fn frame_size(width: u32, height: u32, params: FrameParams) -> (usize, usize) {
+    let f = 1usize << params.downsample_log2.min(31);
+    ((width as usize).div_ceil(f), (height as usize).div_ceil(f))
+}
+
 /// Event frames of `windows` (half-open event index ranges) over `ev`; `map` is an undistortion map of
 /// the sensor (`2·W·H` interleaved `(u, v)` pixel positions, NaN = invalid).
 pub fn accumulate(
@@ -61,6 +69,22 @@ pub fn accumulate(
     params: FrameParams,
     map: Option<&[f32]>,
 ) -> Result<Frames> {
+    let (width, height) = frame_size(ev.width, ev.height, params);
+    let mut data = vec![0f32; windows.len() * width * height];
+    let dropped = accumulate_into(ev, windows, params, map, &mut data)?;
+    Ok(Frames { data, width, height, dropped })
+}
+
+/// [`accumulate`] into a caller's buffer of `B × frame_size(..)` floats (fully overwritten). Reusing one
+/// buffer across calls saves the page faults of fresh output memory, which cost more than counting for
+/// windows that are small next to the frame. Returns the dropped-event count per window.
+pub fn accumulate_into(
+    ev: EventsView<'_>,
+    windows: &[(usize, usize)],
+    params: FrameParams,
+    map: Option<&[f32]>,
+    out: &mut [f32],
+) -> Result<Vec<u64>> {
     let (w, h) = (ev.width as usize, ev.height as usize);
     if w == 0 || h == 0 {
         return Err(Error::Invalid("event frames: the sensor size is unknown (0)".into()));
@@ -87,8 +111,14 @@ pub fn accumulate(
             )));
         }
     }
-    let f = 1usize << params.downsample_log2;
-    let (ow, oh) = (w.div_ceil(f), h.div_ceil(f));
+    let (ow, oh) = frame_size(ev.width, ev.height, params);
+    if out.len() != windows.len() * ow * oh {
+        return Err(Error::Invalid(format!(
+            "event frames: output buffer has {} values, expected {} windows x {oh} x {ow}",
+            out.len(),
+            windows.len()
+        )));
+    }
     // Counts live on the output grid, except with a map: then on the sensor grid, splatted afterwards.
     let grid = if map.is_some() {
         Grid { w, h, shift: 0, cw: w }
@@ -97,25 +127,38 @@ pub fn accumulate(
     };
     let cells = 2 * grid.cw * if map.is_some() { h } else { oh };
 
-    let mut data = vec![0f32; windows.len() * ow * oh];
-    let results: Vec<(u64, usize)> = data
+    // Splitting windows only pays when the windows alone cannot keep every thread busy.
+    let split = windows.len() < 2 * rayon::current_num_threads();
+    // One C and no splat: only `n_on − n_off` matters, counted in the output frame itself (as wrapping
+    // i32 bits) — half the memory traffic of separate counts and no scratch buffer.
+    let signed = map.is_none() && params.c_on == params.c_off;
+    let results: Vec<(u64, usize)> = out
         .par_chunks_mut(ow * oh)
         .zip(windows.par_iter())
-        .map_init(
-            || vec![0u32; cells],
-            |counts, (frame, &(s, e))| {
-                counts.fill(0);
-                let bad = count_window(ev, s..e, grid, counts);
-                let dropped = match map {
-                    None => {
-                        to_frame(counts, frame, params);
-                        0
-                    }
-                    Some(m) => splat(counts, m, frame, ow, oh, params),
-                };
-                (dropped, bad)
-            },
-        )
+        .map(|(frame, &(s, e))| {
+            if signed {
+                frame.fill(0.0);
+                let bad = count_window::<true>(ev, s..e, grid, bytemuck::cast_slice_mut(frame), split);
+                for v in frame.iter_mut() {
+                    *v = params.c_on * (v.to_bits() as i32) as f32;
+                }
+                return (0, bad);
+            }
+            let mut counts = pool::take(cells);
+            let bad = count_window::<false>(ev, s..e, grid, &mut counts, split);
+            let dropped = match map {
+                None => {
+                    to_frame(&mut counts, frame, params);
+                    0
+                }
+                Some(m) => {
+                    frame.fill(0.0);
+                    splat(&mut counts, m, frame, ow, oh, params)
+                }
+            };
+            pool::give(counts);
+            (dropped, bad)
+        })
         .collect();
 
     if results.iter().any(|r| r.1 > 0) {
@@ -129,10 +172,36 @@ pub fn accumulate(
             ev.x[i], ev.y[i]
         )));
     }
-    Ok(Frames { data, width: ow, height: oh, dropped: results.into_iter().map(|r| r.0).collect() })
+    Ok(results.into_iter().map(|r| r.0).collect())
 }
 
-/// Where an event's count goes: cell `2·((y >> shift)·cw + (x >> shift)) + (p < 0)`.
+/// Count buffers kept between calls: fresh multi-megabyte buffers cost page faults on first touch, which
+/// for a 50 k-event window on a 640×480 sensor cost more than the counting. A buffer is only handed
+/// back all zero (every finishing step clears what it read), so `take` never has to clear it.
+mod pool {
+    use std::sync::Mutex;
+
+    static POOL: Mutex<Vec<Vec<u32>>> = Mutex::new(Vec::new());
+    /// Enough for every thread's window plus the parts of a split window, without hoarding memory.
+    const KEEP: usize = 16;
+
+    pub(super) fn take(cells: usize) -> Vec<u32> {
+        let mut buf = POOL.lock().map(|mut p| p.pop()).ok().flatten().unwrap_or_default();
+        buf.resize(cells, 0);
+        buf
+    }
+
+    pub(super) fn give(buf: Vec<u32>) {
+        debug_assert!(buf.iter().all(|&c| c == 0));
+        if let Ok(mut p) = POOL.lock() {
+            if p.len() < KEEP {
+                p.push(buf);
+            }
+        }
+    }
+}
+
+/// Where an event's count goes: pixel `(y >> shift)·cw + (x >> shift)` of a `cw`-wide count grid.
 #[derive(Debug, Clone, Copy)]
 struct Grid {
     w: usize,
@@ -141,41 +210,55 @@ struct Grid {
     cw: usize,
 }
 
-/// Count a window into `counts`, splitting large windows into fixed-size parts counted in parallel and
-/// summed in part order. Returns the number of events outside the sensor.
-fn count_window(ev: EventsView<'_>, range: std::ops::Range<usize>, grid: Grid, counts: &mut [u32]) -> usize {
+/// Count a window into `counts`, with `split`: large windows in fixed-size parts counted in parallel and
+/// summed in part order. `SIGNED`: one wrapping `n_on − n_off` per pixel, else `(n_on, n_off)` pairs.
+/// Returns the number of events outside the sensor.
+fn count_window<const SIGNED: bool>(
+    ev: EventsView<'_>,
+    range: std::ops::Range<usize>,
+    grid: Grid,
+    counts: &mut [u32],
+    split: bool,
+) -> usize {
     let part = MIN_PART_EVENTS.max(2 * counts.len());
-    let n_parts = range.len().div_ceil(part);
+    let n_parts = if split { range.len().div_ceil(part) } else { 1 };
     if n_parts <= 1 {
-        return count_range(ev, range, grid, counts);
+        return count_range::<SIGNED>(ev, range, grid, counts);
     }
     let (first, cells) = (range.start..range.start + part, counts.len());
     let (bad0, rest) = rayon::join(
-        || count_range(ev, first, grid, counts),
+        || count_range::<SIGNED>(ev, first, grid, counts),
         || {
             (1..n_parts)
                 .into_par_iter()
                 .map(|k| {
-                    let mut c = vec![0u32; cells];
+                    let mut c = pool::take(cells);
                     let r = range.start + k * part..(range.start + (k + 1) * part).min(range.end);
-                    let bad = count_range(ev, r, grid, &mut c);
+                    let bad = count_range::<SIGNED>(ev, r, grid, &mut c);
                     (c, bad)
                 })
                 .collect::<Vec<_>>()
         },
     );
     let mut bad = bad0;
-    for (c, b) in rest {
-        for (acc, v) in counts.iter_mut().zip(&c) {
-            *acc += v;
+    for (mut c, b) in rest {
+        for (acc, v) in counts.iter_mut().zip(c.iter_mut()) {
+            *acc = acc.wrapping_add(*v);
+            *v = 0;
         }
+        pool::give(c);
         bad += b;
     }
     bad
 }
 
 /// The hot loop: one table increment per event. Events outside the sensor are skipped and counted.
-fn count_range(ev: EventsView<'_>, range: std::ops::Range<usize>, g: Grid, counts: &mut [u32]) -> usize {
+fn count_range<const SIGNED: bool>(
+    ev: EventsView<'_>,
+    range: std::ops::Range<usize>,
+    g: Grid,
+    counts: &mut [u32],
+) -> usize {
     let (xs, ys, ps) = (&ev.x[range.clone()], &ev.y[range.clone()], &ev.p[range]);
     let mut bad = 0;
     for ((&x, &y), &p) in xs.iter().zip(ys).zip(ps) {
@@ -184,36 +267,51 @@ fn count_range(ev: EventsView<'_>, range: std::ops::Range<usize>, g: Grid, count
             bad += 1;
             continue;
         }
-        let cell = 2 * ((y >> g.shift) * g.cw + (x >> g.shift)) + usize::from(p as u8 >> 7);
-        counts[cell] += 1;
+        let pix = (y >> g.shift) * g.cw + (x >> g.shift);
+        let negative = usize::from(p as u8 >> 7);
+        if SIGNED {
+            // +1 or −1 as a wrapping u32 (two's complement).
+            counts[pix] = counts[pix].wrapping_add(1u32.wrapping_sub(2 * negative as u32));
+        } else {
+            counts[2 * pix + negative] += 1;
+        }
     }
     bad
 }
 
-fn to_frame(counts: &[u32], frame: &mut [f32], p: FrameParams) {
-    for (v, c) in frame.iter_mut().zip(counts.chunks_exact(2)) {
-        *v = p.c_on * c[0] as f32 - p.c_off * c[1] as f32;
+#[inline]
+fn value(c: &[u32], p: FrameParams) -> f32 {
+    p.c_on * c[0] as f32 - p.c_off * c[1] as f32
+}
+
+/// Every cell → frame value; clears `counts`.
+fn to_frame(counts: &mut [u32], frame: &mut [f32], p: FrameParams) {
+    for (v, c) in frame.iter_mut().zip(counts.chunks_exact_mut(2)) {
+        *v = value(c, p);
+        c.fill(0);
     }
 }
 
 /// Bilinear splat of each sensor pixel's value at its undistorted position on the `ow × oh` output grid.
-/// Returns the number of events whose position lies outside the image.
-fn splat(counts: &[u32], map: &[f32], frame: &mut [f32], ow: usize, oh: usize, p: FrameParams) -> u64 {
+/// Returns the number of events whose position lies outside the image. Clears `counts`.
+fn splat(counts: &mut [u32], map: &[f32], frame: &mut [f32], ow: usize, oh: usize, p: FrameParams) -> u64 {
     let scale = 1.0 / (1u32 << p.downsample_log2) as f32;
     let (wf, hf) = (ow as f32, oh as f32);
     let mut dropped = 0u64;
-    for (c, uv) in counts.chunks_exact(2).zip(map.chunks_exact(2)) {
+    for (c, uv) in counts.chunks_exact_mut(2).zip(map.chunks_exact(2)) {
         if c[0] == 0 && c[1] == 0 {
             continue;
         }
+        let (on, off) = (c[0], c[1]);
+        c.fill(0);
         let u = (uv[0] + 0.5) * scale - 0.5;
         let v = (uv[1] + 0.5) * scale - 0.5;
         // Inside the image rectangle [-0.5, W - 0.5) × [-0.5, H - 0.5); false for NaN.
         if !(u >= -0.5 && u < wf - 0.5 && v >= -0.5 && v < hf - 0.5) {
-            dropped += u64::from(c[0]) + u64::from(c[1]);
+            dropped += u64::from(on) + u64::from(off);
             continue;
         }
-        let value = p.c_on * c[0] as f32 - p.c_off * c[1] as f32;
+        let value = value(&[on, off], p);
         // Within half a pixel of the border the outer neighbour is off-grid: its share goes to the border.
         let (u, v) = (u.clamp(0.0, wf - 1.0), v.clamp(0.0, hf - 1.0));
         let (x0, y0) = (u as usize, v as usize);
@@ -257,15 +355,19 @@ mod tests {
                 off[k] += 1.0
             }
         }
-        on.iter().zip(&off).map(|(a, b)| params.c_on * *a as f32 - params.c_off * *b as f32).collect()
+        if params.c_on == params.c_off {
+            on.iter().zip(&off).map(|(a, b)| params.c_on * (a - b) as f32).collect()
+        } else {
+            on.iter().zip(&off).map(|(a, b)| params.c_on * *a as f32 - params.c_off * *b as f32).collect()
+        }
     }
 
     #[test]
-    fn matches_reference_with_asymmetric_constants_and_downsampling() {
+    fn matches_reference_with_one_or_two_constants_and_downsampling() {
         let ev = random_events(20_000, 37, 23, 1);
         let windows = [(0, 20_000), (5, 5), (100, 7_000), (19_999, 20_000)];
-        for ds in 0..3 {
-            let params = FrameParams { c_on: 0.25, c_off: 0.1, downsample_log2: ds };
+        for (ds, c_off) in (0..3).flat_map(|ds| [(ds, 0.1), (ds, 0.25)]) {
+            let params = FrameParams { c_on: 0.25, c_off, downsample_log2: ds };
             let fr = accumulate(ev.view(), &windows, params, None).unwrap();
             assert_eq!((fr.width, fr.height), (37usize.div_ceil(1 << ds), 23usize.div_ceil(1 << ds)));
             let hw = fr.width * fr.height;
@@ -282,12 +384,23 @@ mod tests {
 
     #[test]
     fn split_windows_equal_unsplit_counts() {
-        // 3 M events on a tiny sensor: the window is split into parts; the sums must be exact.
+        // 3 M events on a tiny sensor: split into 4 parts; the sums must be exact.
         let ev = random_events(3 * MIN_PART_EVENTS + 17, 5, 3, 2);
         let n = ev.len();
-        let fr = accumulate(ev.view(), &[(0, n), (1, n - 1)], FrameParams::default(), None).unwrap();
-        assert_eq!(&fr.data[..15], reference(&ev, 0, n, FrameParams::default()).as_slice());
-        assert_eq!(&fr.data[15..], reference(&ev, 1, n - 1, FrameParams::default()).as_slice());
+        let grid = Grid { w: 5, h: 3, shift: 0, cw: 5 };
+        let (mut split, mut whole) = (vec![0u32; 30], vec![0u32; 30]);
+        assert_eq!(count_window::<false>(ev.view(), 1..n, grid, &mut split, true), 0);
+        assert_eq!(count_window::<false>(ev.view(), 1..n, grid, &mut whole, false), 0);
+        assert_eq!(split, whole);
+        assert_eq!(split.iter().map(|&c| c as usize).sum::<usize>(), n - 1);
+        let (mut split, mut whole) = (vec![0u32; 15], vec![0u32; 15]);
+        count_window::<true>(ev.view(), 1..n, grid, &mut split, true);
+        count_window::<true>(ev.view(), 1..n, grid, &mut whole, false);
+        assert_eq!(split, whole);
+        let net: i64 = ev.p[1..].iter().map(|&p| i64::from(p)).sum();
+        assert_eq!(split.iter().map(|&c| i64::from(c as i32)).sum::<i64>(), net);
+        let fr = accumulate(ev.view(), &[(1, n)], FrameParams::default(), None).unwrap();
+        assert_eq!(fr.data, reference(&ev, 1, n, FrameParams::default()));
     }
 
     #[test]

@@ -30,7 +30,8 @@ impl ChunkIndex {
         }
         if let Some(k) = frame_t.windows(2).position(|w| w[0] >= w[1]) {
             return Err(Error::Invalid(format!(
-                "chunk index: frame timestamps must be strictly increasing, but frame {} ({} µs) ≤ frame {} ({} µs)",
+                "chunk index: frame timestamps must be strictly increasing, \
+                 but frame {} ({} µs) ≤ frame {} ({} µs)",
                 k + 1,
                 frame_t[k + 1],
                 k,

@@ -43,7 +43,8 @@ impl Intrinsics {
         }
         if !matches!(dist.len(), 0 | 4 | 5) || dist.iter().any(|d| !d.is_finite()) {
             return Err(Error::Invalid(format!(
-                "undistortion map: expected 0, 4 or 5 finite distortion coefficients (k1 k2 p1 p2 [k3]), got {dist:?}"
+                "undistortion map: expected 0, 4 or 5 finite distortion coefficients \
+                 (k1 k2 p1 p2 [k3]), got {dist:?}"
             )));
         }
         let mut d = [0.0; 5];

@@ -97,7 +97,8 @@ impl WindowSampler {
                 sampler.max_w = max_w.min(n);
                 if min_w > n {
                     return Err(Error::Invalid(format!(
-                        "window sampler: min_n_winsize = {min_w} events cannot be met: only {n} events in {where_}"
+                        "window sampler: min_n_winsize = {min_w} events cannot be met: \
+                         only {n} events in {where_}"
                     )));
                 }
             }
@@ -105,8 +106,8 @@ impl WindowSampler {
                 sampler.candidates = reference_ends(n, seg_num, max_w);
                 if sampler.candidates.is_empty() {
                     return Err(Error::Invalid(format!(
-                        "window sampler (reference mode): no candidate end in linspace(10, {n} - 10, {seg_num}) \
-                         is above max_n_winsize = {max_w} and within the {n} events in {where_}"
+                        "window sampler (reference mode): no candidate end in \
+                         linspace(10, {n} - 10, {seg_num}) is above max_n_winsize = {max_w} and within the {n} events in {where_}"
                     )));
                 }
             }

@@ -1,13 +1,13 @@
 //! Bindings for `crate::events::{index, window, accumulate, undistort}` (chunks, windows, event frames).
 //! Arrays cross as flat 1-D buffers; `evgs.events.frames` gives them their shapes (views, no copies).
 
-use numpy::{IntoPyArray, PyArray1, PyReadonlyArray1};
+use numpy::{IntoPyArray, PyArray1, PyArrayMethods, PyReadonlyArray1};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
 use super::events::to_py_err;
 use crate::error::Error;
-use crate::events::accumulate::{accumulate, FrameParams};
+use crate::events::accumulate::{accumulate, accumulate_into, frame_size, FrameParams};
 use crate::events::index::ChunkIndex;
 use crate::events::undistort::Intrinsics;
 use crate::events::window::{self, WindowMode};
@@ -82,9 +82,13 @@ impl PyWindowSampler {
 }
 
 /// Event frames of the windows `[starts[b], ends[b])`: `(flat (B·H·W) float32, width, height, dropped)`.
+/// With `out` (a flat float32 buffer of the right size, e.g. a view of the previous call's frames) the
+/// frames are written there and `out` is returned.
 #[allow(clippy::too_many_arguments)]
 #[pyfunction]
-#[pyo3(signature = (t, x, y, p, width, height, starts, ends, c_on, c_off, downsample_log2 = 0, undistort_map = None))]
+#[pyo3(signature = (
+    t, x, y, p, width, height, starts, ends, c_on, c_off, downsample_log2 = 0, undistort_map = None, out = None
+))]
 fn accumulate_frames<'py>(
     py: Python<'py>,
     t: PyReadonlyArray1<'_, i64>,
@@ -99,34 +103,48 @@ fn accumulate_frames<'py>(
     c_off: f32,
     downsample_log2: u32,
     undistort_map: Option<PyReadonlyArray1<'_, f32>>,
+    out: Option<Bound<'py, PyArray1<f32>>>,
 ) -> PyResult<(Array<'py, f32>, usize, usize, Array<'py, u64>)> {
     let ev =
         EventsView { t: t.as_slice()?, x: x.as_slice()?, y: y.as_slice()?, p: p.as_slice()?, width, height };
-    let (starts, ends) = (starts.as_slice()?, ends.as_slice()?);
+    let windows = windows(starts.as_slice()?, ends.as_slice()?).map_err(to_py_err)?;
     let map = undistort_map.as_ref().map(|m| m.as_slice()).transpose()?;
     let params = FrameParams { c_on, c_off, downsample_log2 };
-    let frames = py
-        .detach(|| {
-            if starts.len() != ends.len() {
-                return Err(Error::Invalid(format!(
-                    "event frames: {} window starts but {} ends",
-                    starts.len(),
-                    ends.len()
-                )));
-            }
-            let windows = starts
-                .iter()
-                .zip(ends)
-                .enumerate()
-                .map(|(b, (&s, &e))| match (usize::try_from(s), usize::try_from(e)) {
-                    (Ok(s), Ok(e)) => Ok((s, e)),
-                    _ => Err(Error::Invalid(format!("event frames: window {b} = [{s}, {e}) is negative"))),
-                })
-                .collect::<Result<Vec<_>, _>>()?;
-            accumulate(ev, &windows, params, map)
+    let (w, h) = frame_size(width, height, params);
+    match out {
+        Some(out) => {
+            let dropped = {
+                let mut rw = out.try_readwrite()?;
+                let buf = rw.as_slice_mut()?;
+                py.detach(|| accumulate_into(ev, &windows, params, map, buf)).map_err(to_py_err)?
+            };
+            Ok((out, w, h, dropped.into_pyarray(py)))
+        }
+        None => {
+            let frames = py.detach(|| accumulate(ev, &windows, params, map)).map_err(to_py_err)?;
+            Ok((frames.data.into_pyarray(py), w, h, frames.dropped.into_pyarray(py)))
+        }
+    }
+}
+
+/// Pair up window starts and ends, rejecting negative indices (the core checks the upper bound).
+fn windows(starts: &[i64], ends: &[i64]) -> Result<Vec<(usize, usize)>, Error> {
+    if starts.len() != ends.len() {
+        return Err(Error::Invalid(format!(
+            "event frames: {} window starts but {} ends",
+            starts.len(),
+            ends.len()
+        )));
+    }
+    starts
+        .iter()
+        .zip(ends)
+        .enumerate()
+        .map(|(b, (&s, &e))| match (usize::try_from(s), usize::try_from(e)) {
+            (Ok(s), Ok(e)) => Ok((s, e)),
+            _ => Err(Error::Invalid(format!("event frames: window {b} = [{s}, {e}) is negative"))),
         })
-        .map_err(to_py_err)?;
-    Ok((frames.data.into_pyarray(py), frames.width, frames.height, frames.dropped.into_pyarray(py)))
+        .collect()
 }
 
 /// Undistorted pixel position of every sensor pixel centre, flat `(H·W·2)` float32, NaN where the
