@@ -17,7 +17,7 @@ dev:
 
 ## run: the main job on the built-in default sequence
 run: install
-	$(VENV)/bin/evgs events demo --out data/demo
+	$(VENV)/bin/evgs run --seq synthetic/orbit_ambient
 
 ## test: all tests, Rust and Python
 test: install test-rust test-py

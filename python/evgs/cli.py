@@ -15,6 +15,7 @@ COMMAND_MODULES = [
     "evgs.eval.cli",
     "evgs.sim.cli",
     "evgs.data.cli",
+    "evgs.slam.cli",
 ]
 
 

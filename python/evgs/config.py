@@ -38,6 +38,7 @@ class DataConfig:
     min_n_winsize: int
     seg_num: int
     training_batch_size: int
+    window_mode: Literal["paper", "reference"]
 
 
 @dataclass(frozen=True)
@@ -81,6 +82,7 @@ class GlobalBAConfig:
 class GaussiansConfig:
     num_init: int
     bounding_size: float
+    init_depth: float
     init_opacity: float
     init_color: float
     background: float
@@ -130,6 +132,15 @@ class GuardsConfig:
 
 
 @dataclass(frozen=True)
+class EconomyConfig:
+    patience: int
+    min_rel_change: float
+    min_fraction: float
+    coarse_factor: int
+    coarse_fraction: float
+
+
+@dataclass(frozen=True)
 class OutputConfig:
     runs_dir: str
     diagnostics_every: int
@@ -151,6 +162,7 @@ class Config:
     loss: LossConfig
     strategy: StrategyConfig
     guards: GuardsConfig
+    economy: EconomyConfig
     output: OutputConfig
 
     def to_dict(self) -> dict[str, Any]:

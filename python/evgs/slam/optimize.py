@@ -1,0 +1,198 @@
+"""The event-loss step and the optimisation loop every stage runs (paper §3.2–3.5).
+
+One step: B windows from the Rust sampler, their event frames, the poses at each window's first and
+last event from the continuous trajectory, one batched render of the 2B views, ``Ê = L(Î_end) −
+L(Î_start)``, the loss of eq. 8 (plus the brightness anchor), backward, Adam on the trainable pose
+increments and (when mapping) the Gaussians, then the guards and the densification schedule.
+
+Economy: early iterations may render at ``1/coarse_factor`` resolution, and a stage ends early once the
+mean loss of the last ``patience`` iterations improves on the block before by less than
+``min_rel_change`` (at the coarse level this moves on to full resolution instead).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from evgs.data.sequence import Camera
+from evgs.render import RenderResult, render
+from evgs.slam.gaussians import make_optimizer
+from evgs.slam.guards import blocker_mask, clamp_colors_
+from evgs.slam.loss import LossTerms, event_loss, valid_mask
+from evgs.slam.state import SlamState, StageRecord
+from evgs.slam.strategy import DefaultStrategy, reset_opacity
+from evgs.slam.windows import Windows, scaled_camera
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    stage: str  # "init", "track", "map", "gba", "final"
+    frame: int  # newest frame of the stage (names diagnostics)
+    iterations: int
+    span: tuple[int, int]  # event index range the windows come from
+    batch: int  # windows per iteration
+    seed: int  # the window sampler's
+    trainable_knots: Sequence[int]  # knots whose pose increments are optimised
+    recent_knots: Sequence[int]  # cameras the near-camera guard protects
+    train_gaussians: bool
+    masked: bool = False  # tracking's border / low-alpha mask
+    anchored: bool = False  # brightness anchor term
+
+
+@dataclass
+class StepResult:
+    out: RenderResult
+    terms: LossTerms
+    total: Tensor
+    camera: Camera
+
+
+class Convergence:
+    """Relative change of the mean loss between two consecutive blocks of ``patience`` iterations."""
+
+    def __init__(self, patience: int, min_rel_change: float):
+        self.patience, self.min_rel_change = patience, min_rel_change
+        self.losses: list[float] = []
+
+    def update(self, loss: float) -> bool:
+        self.losses.append(loss)
+        p = self.patience
+        if p <= 0 or len(self.losses) < 2 * p:
+            return False
+        prev, cur = float(np.mean(self.losses[-2 * p : -p])), float(np.mean(self.losses[-p:]))
+        return prev - cur < self.min_rel_change * abs(prev)
+
+
+def render_windows(state: SlamState, win: Windows, camera: Camera) -> RenderResult:
+    """One render of the 2B views: every window's start pose, then every window's end pose."""
+    viewmats = state.traj.viewmats_at(np.concatenate([win.t_start, win.t_end]))
+    return render(
+        **state.gaussians.render_inputs(), viewmats=viewmats, camera=camera,
+        background=state.cfg.gaussians.background,
+    )  # fmt: skip
+
+
+def loss_step(state: SlamState, spec: StageSpec, win: Windows, factor: int) -> StepResult:
+    """Forward pass and loss of one batch (no backward)."""
+    cfg = state.cfg
+    camera = scaled_camera(state.data.camera, factor)
+    out = render_windows(state, win, camera)
+    b = len(win.starts)
+    gray = out.color[..., 0]
+    mask = None
+    if spec.masked:
+        t = cfg.tracking
+        mask = valid_mask(out.alpha[:b], out.alpha[b:], t.mask_border // factor, t.mask_alpha)
+    terms = event_loss(win.frames, gray[:b], gray[b:], cfg.loss, mask)
+    total = terms.total
+    if spec.anchored:
+        total = total + state.anchor.penalty(out.color, out.alpha)
+    return StepResult(out, terms, total, camera)
+
+
+def set_gaussians_trainable(state: SlamState, on: bool) -> None:
+    for p in state.gaussians.params.values():
+        p.requires_grad_(on)
+
+
+def prune_blockers(
+    state: SlamState,
+    spec: StageSpec,
+    strategy: DefaultStrategy,
+    opt: torch.optim.Optimizer | None,
+    step: StepResult,
+) -> int:
+    """The near-camera / large-footprint guard (``guards.near_margin`` 0 and ``max_footprint`` ≥ 1 = off)."""
+    g = state.cfg.guards
+    with torch.no_grad():
+        recent = state.traj.knots()[list(spec.recent_knots)]
+    # The footprint test needs this step's radii, which no longer align after a refinement.
+    radii = step.out.radii if step.out.radii.shape[1] == len(state.gaussians) else None
+    mask = blocker_mask(
+        state.gaussians, recent, step.camera, near_margin=g.near_margin * state.cfg.gaussians.bounding_size,
+        radii=radii, max_footprint=g.max_footprint, footprint_min_opacity=g.footprint_min_opacity,
+    )  # fmt: skip
+    n = int(mask.sum())
+    if n and n < len(state.gaussians):
+        strategy.remove(state.gaussians, opt, mask)
+    return n if n < len(state.gaussians) else 0
+
+
+def run_stage(state: SlamState, spec: StageSpec, reporter: StageReporter | None = None) -> StageRecord:
+    """Optimise for up to ``spec.iterations`` iterations; the trajectory is rebased at the end."""
+    cfg, data, traj = state.cfg, state.data, state.traj
+    econ = cfg.economy
+    sampler = data.sampler(spec.span, spec.seed)
+    traj.set_trainable(list(spec.trainable_knots))
+    pose_opt = (
+        torch.optim.Adam([traj.delta], lr=cfg.trajectory.pose_lr) if len(spec.trainable_knots) else None
+    )
+    set_gaussians_trainable(state, spec.train_gaussians)
+    g_opt, strategy = None, DefaultStrategy(cfg.strategy, cfg.gaussians.bounding_size)
+    if spec.train_gaussians:
+        g_opt = make_optimizer(state.gaussians, cfg.gaussians)
+        if cfg.strategy.reset_at_stage_start:
+            reset_opacity(state.gaussians, g_opt, cfg.strategy.reset_opacity)
+    coarse_end = int(econ.coarse_fraction * spec.iterations) if econ.coarse_factor > 1 else 0
+    stopper = Convergence(econ.patience, econ.min_rel_change)
+    t0, n_events, blockers, stopped, loss, step = time.perf_counter(), 0, 0, False, float("nan"), None
+    it = -1
+    for it in range(spec.iterations):
+        factor = econ.coarse_factor if it < coarse_end else 1
+        win = data.windows(sampler, spec.batch, factor)
+        if pose_opt is not None:
+            pose_opt.zero_grad(set_to_none=True)
+        if g_opt is not None:
+            g_opt.zero_grad(set_to_none=True)
+        step = loss_step(state, spec, win, factor)
+        step.total.backward()
+        if pose_opt is not None:
+            pose_opt.step()
+        if g_opt is not None:
+            grad2d = step.out.grad2d_norm()
+            if grad2d is not None:
+                strategy.accumulate(grad2d, step.out.radii, step.camera.width, step.camera.height)
+            g_opt.step()
+            clamp_colors_(state.gaussians, cfg.guards.max_color)
+            if it > 0 and it % cfg.strategy.refine_every == 0:  # before refining: radii still align
+                blockers += prune_blockers(state, spec, strategy, g_opt, step)
+            strategy.step(state.gaussians, g_opt, it, state.generator)
+        loss = float(step.total.detach())
+        n_events += win.n_events
+        if reporter is not None:
+            reporter.advance(state, spec, it, loss, n_events, time.perf_counter() - t0)
+        if stopper.update(loss):
+            if factor > 1:  # the coarse level has converged: go on at full resolution
+                coarse_end, stopper = it + 1, Convergence(econ.patience, econ.min_rel_change)
+            elif it + 1 >= econ.min_fraction * spec.iterations:
+                stopped = True
+                break
+    if spec.train_gaussians and step is not None:
+        blockers += prune_blockers(state, spec, strategy, g_opt, step)
+    set_gaussians_trainable(state, True)
+    traj.rebase()
+    record = StageRecord(
+        spec.stage, spec.frame, it + 1, loss, time.perf_counter() - t0, n_events, stopped,
+        len(state.gaussians), blockers,
+    )  # fmt: skip
+    state.history.append(record)
+    if reporter is not None:
+        reporter.stage_end(state, spec, record)
+    return record
+
+
+class StageReporter(Protocol):
+    """Receives every iteration's progress (progress bars, diagnostics); tests pass None."""
+
+    def advance(
+        self, state: SlamState, spec: StageSpec, it: int, loss: float, events: int, seconds: float
+    ) -> None: ...
+
+    def stage_end(self, state: SlamState, spec: StageSpec, record: StageRecord) -> None: ...

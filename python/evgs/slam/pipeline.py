@@ -1,0 +1,101 @@
+"""The SLAM loop over a sequence: initialization, then per chunk tracking, local BA every
+``mapping.every`` frames and global BA every ``global_ba.every`` frames, and a final global BA.
+
+The state is snapshotted at every frame boundary and written to ``checkpoints/`` every
+``output.checkpoint_every`` frames; Ctrl-C (KeyboardInterrupt) writes the last boundary's snapshot, so
+``evgs run --resume`` repeats at most the interrupted frame and ends exactly where an uninterrupted run
+would.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from evgs.config import Config
+from evgs.slam import checkpoint
+from evgs.slam.gaussians import Gaussians
+from evgs.slam.guards import BrightnessAnchor
+from evgs.slam.optimize import StageReporter
+from evgs.slam.run_dir import RunDir
+from evgs.slam.stages import global_ba, initialize, map_window, track
+from evgs.slam.state import SlamState, StageRecord
+from evgs.slam.trajectory import Trajectory, random_knots
+from evgs.slam.windows import EventData
+
+
+def new_state(cfg: Config, data: EventData) -> SlamState:
+    """Random Gaussians in the bounding box and near-identity knots at the initialization frames."""
+    generator = torch.Generator().manual_seed(cfg.seed)
+    gaussians = Gaussians.from_config(cfg.gaussians, generator)
+    with torch.no_grad():  # the first camera is near the identity: its optical axis is +z
+        gaussians["means"][:, 2] += cfg.gaussians.init_depth
+    m = min(cfg.init.num_frames, data.n_chunks)
+    knots = random_knots(m + 1, cfg.trajectory.init_pose_noise, generator)
+    traj = Trajectory(data.frames_us[: m + 1], knots, cfg.trajectory.interpolation)
+    return SlamState(cfg, data, traj, gaussians, generator, BrightnessAnchor(cfg.guards.brightness_weight))
+
+
+def describe(record: StageRecord) -> str:
+    early = ", converged" if record.stopped_early else ""
+    extra = f", +{record.added} new" if record.added else ""
+    extra += f", {record.pruned_blockers} blockers pruned" if record.pruned_blockers else ""
+    return (
+        f"{record.stage} frame {record.frame}: {record.iterations} it{early}, loss {record.loss:.5f}, "
+        f"{record.n_gaussians} Gaussians{extra}, {record.seconds:.1f} s"
+    )
+
+
+def run_slam(
+    state: SlamState,
+    run: RunDir,
+    reporter: StageReporter | None = None,
+    log: Callable[[str], None] | None = None,
+) -> SlamState:
+    """Run (or continue, from ``state.position``) to the end; write the outputs into ``run``."""
+    cfg, pos, n_chunks = state.cfg, state.position, state.data.n_chunks
+
+    def note(record: StageRecord) -> None:
+        run.log(describe(record))
+        if log is not None:
+            log(describe(record))
+
+    last = checkpoint.snapshot(state)
+    since_saved = 0
+
+    def boundary(force: bool = False) -> None:
+        nonlocal last, since_saved
+        last = checkpoint.snapshot(state)
+        since_saved += 1
+        if force or since_saved >= cfg.output.checkpoint_every:
+            checkpoint.save(run.checkpoint_path, last)
+            run.write_trajectory(state)
+            since_saved = 0
+
+    try:
+        if not pos.initialized:
+            note(initialize(state, reporter))
+            pos.initialized, pos.next_chunk = True, state.num_init_chunks()
+            boundary(force=True)
+        while pos.next_chunk < n_chunks:
+            k = pos.next_chunk
+            note(track(state, k, reporter))
+            pos.since_mapping += 1
+            if pos.since_mapping >= cfg.mapping.every:
+                note(map_window(state, k, reporter))
+                pos.since_mapping = 0
+            if cfg.global_ba.every > 0 and (k + 1) % cfg.global_ba.every == 0 and k + 1 < n_chunks:
+                note(global_ba(state, final=False, reporter=reporter))
+            pos.next_chunk += 1
+            boundary()
+        if not pos.finished:
+            note(global_ba(state, final=True, reporter=reporter))
+            pos.finished = True
+            boundary(force=True)
+    except KeyboardInterrupt:
+        checkpoint.save(run.checkpoint_path, last)
+        run.log(f"interrupted; checkpoint at chunk {last['position']['next_chunk']} written")
+        raise
+    run.write_outputs(state)
+    return state

@@ -1,0 +1,121 @@
+"""The four stages of the paper's §3 as optimisation problems for :func:`run_stage`.
+
+Knot ``k`` sits at frame ``k`` (of the frames the run uses) and chunk ``k`` holds the events between
+knots ``k`` and ``k+1``. Knot 0 is never optimised: it fixes the gauge (the map's frame), which the
+event loss cannot observe.
+
+- initialization: chunks ``0..m-1``, knots ``1..m`` and the Gaussians jointly;
+- tracking of chunk ``k``: knot ``k+1`` appended by constant velocity, then only it moves;
+- mapping (local BA): the last ``mapping.window`` chunks, their knots and the Gaussians, after adding
+  Gaussians where the newest view is still uncovered (low alpha) but events fired;
+- global BA: windows from all chunks so far, every knot but the first and the Gaussians.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from evgs.render import render
+from evgs.slam.optimize import StageReporter, StageSpec, run_stage
+from evgs.slam.state import SlamState, StageRecord, stage_seed
+from evgs.slam.strategy import DefaultStrategy, gaussians_from_view, median_depth
+
+
+def _seq_frame(state: SlamState, knot: int) -> int:
+    return state.cfg.data.start_frame + knot
+
+
+def initialize(state: SlamState, reporter: StageReporter | None = None) -> StageRecord:
+    m = state.num_init_chunks()
+    cfg = state.cfg
+    spec = StageSpec(
+        "init", _seq_frame(state, m), cfg.init.num_opti_steps_for_init, state.data.span(0, m),
+        cfg.data.training_batch_size, stage_seed(cfg.seed, "init", m), range(1, m + 1), range(m + 1),
+        train_gaussians=True,
+    )  # fmt: skip
+    record = run_stage(state, spec, reporter)
+    set_brightness_reference(state)
+    return record
+
+
+@torch.no_grad()
+def render_knots(state: SlamState, knots: list[int]):
+    """Full-resolution renders at the given knots (no gradient)."""
+    viewmats = state.traj.viewmats_at(state.traj.t_us[knots].numpy())
+    return render(
+        **state.gaussians.render_inputs(), viewmats=viewmats, camera=state.data.camera,
+        background=state.cfg.gaussians.background,
+    )  # fmt: skip
+
+
+def set_brightness_reference(state: SlamState) -> None:
+    """Anchor the surface brightness to its value over the initialization views."""
+    out = render_knots(state, list(range(len(state.traj))))
+    state.anchor.set_reference(out.color, out.alpha)
+
+
+def track(
+    state: SlamState, k: int, reporter: StageReporter | None = None, pose: torch.Tensor | None = None
+) -> StageRecord:
+    """Track chunk ``k``; the new knot starts at ``pose`` (default: constant-velocity prediction)."""
+    cfg = state.cfg
+    state.traj.append(int(state.data.frames_us[k + 1]), pose)
+    spec = StageSpec(
+        "track", _seq_frame(state, k + 1), cfg.tracking.num_opti_steps, state.data.span_with_min(k, k + 1),
+        cfg.data.training_batch_size, stage_seed(cfg.seed, "track", k), [k + 1], [k, k + 1],
+        train_gaussians=False, masked=True,
+    )  # fmt: skip
+    return run_stage(state, spec, reporter)
+
+
+def add_gaussians_from_newest_view(state: SlamState, k: int) -> int:
+    """New Gaussians at low-alpha, event-carrying pixels of knot ``k+1``'s view (chunk ``k``'s events);
+    back-projected at ``mapping.new_gaussian_depth`` or else the view's median rendered depth."""
+    cfg, data = state.cfg, state.data
+    out = render_knots(state, [k + 1])
+    depth = cfg.mapping.new_gaussian_depth or median_depth(out.depth[0], out.alpha[0])
+    if depth is None or cfg.mapping.max_new_gaussians == 0:
+        return 0
+    s, e = data.chunks[k]
+    events = data.frames_of(s[None], e[None])[0]
+    uncovered = (out.alpha[0] < cfg.mapping.new_gaussian_alpha) & (
+        events.abs() > cfg.strategy.event_threshold
+    )
+    if not bool(uncovered.any()):
+        return 0
+    with torch.no_grad():
+        pose = state.traj.knots()[k + 1]
+    extra = gaussians_from_view(
+        out.alpha[0], pose, data.camera, depth, max_new=cfg.mapping.max_new_gaussians,
+        max_alpha=cfg.mapping.new_gaussian_alpha, opacity=cfg.gaussians.init_opacity,
+        color=cfg.gaussians.init_color, generator=state.generator, events=events,
+        event_threshold=cfg.strategy.event_threshold,
+    )  # fmt: skip
+    DefaultStrategy(cfg.strategy, cfg.gaussians.bounding_size).add(state.gaussians, None, extra)
+    return len(extra["means"])
+
+
+def map_window(state: SlamState, k: int, reporter: StageReporter | None = None) -> StageRecord:
+    cfg = state.cfg
+    added = add_gaussians_from_newest_view(state, k)
+    first = max(0, k + 1 - cfg.mapping.window)
+    spec = StageSpec(
+        "map", _seq_frame(state, k + 1), cfg.mapping.num_opti_steps_for_BA, state.data.span(first, k + 1),
+        cfg.data.training_batch_size, stage_seed(cfg.seed, "map", k), range(max(first, 1), k + 2),
+        range(first, k + 2), train_gaussians=True, anchored=True,
+    )  # fmt: skip
+    record = run_stage(state, spec, reporter)
+    record.added = added
+    return record
+
+
+def global_ba(state: SlamState, final: bool, reporter: StageReporter | None = None) -> StageRecord:
+    cfg = state.cfg
+    n = len(state.traj) - 1  # chunks covered by the trajectory
+    stage = "final" if final else "gba"
+    iters = cfg.global_ba.num_opti_steps_final if final else cfg.global_ba.num_opti_steps
+    spec = StageSpec(
+        stage, _seq_frame(state, n), iters, state.data.span(0, n), cfg.data.training_batch_size,
+        stage_seed(cfg.seed, stage, n), range(1, n + 1), range(n + 1), train_gaussians=True, anchored=True,
+    )  # fmt: skip
+    return run_stage(state, spec, reporter)

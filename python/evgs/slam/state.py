@@ -1,0 +1,68 @@
+"""Everything a SLAM run carries from stage to stage, and where it is in the sequence.
+
+Every random choice draws from ``generator`` (Gaussians, initial knots, splits, new Gaussians) or from a
+sampler seeded by :func:`stage_seed`, so restoring the generator's state at a stage boundary makes the
+continuation of a run identical to an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from evgs.config import Config
+from evgs.slam.gaussians import Gaussians
+from evgs.slam.guards import BrightnessAnchor
+from evgs.slam.trajectory import Trajectory
+from evgs.slam.windows import EventData
+
+STAGES = ("init", "track", "map", "gba", "final")
+
+
+def stage_seed(seed: int, stage: str, frame: int) -> int:
+    """A sampler seed per (run seed, stage, frame): independent streams, no state to checkpoint."""
+    return int(np.random.SeedSequence([seed, STAGES.index(stage), frame]).generate_state(1, np.uint64)[0])
+
+
+@dataclass
+class Position:
+    """Where the run is: ``next_chunk`` is the next chunk to track (== number of knots − 1)."""
+
+    initialized: bool = False
+    next_chunk: int = 0
+    since_mapping: int = 0
+    finished: bool = False
+
+
+@dataclass
+class StageRecord:
+    """One finished stage, for the log and metrics.json."""
+
+    stage: str
+    frame: int
+    iterations: int
+    loss: float
+    seconds: float
+    events: int
+    stopped_early: bool
+    n_gaussians: int
+    pruned_blockers: int = 0
+    added: int = 0
+
+
+@dataclass
+class SlamState:
+    cfg: Config
+    data: EventData
+    traj: Trajectory
+    gaussians: Gaussians
+    generator: torch.Generator
+    anchor: BrightnessAnchor
+    position: Position = field(default_factory=Position)
+    history: list[StageRecord] = field(default_factory=list)
+
+    def num_init_chunks(self) -> int:
+        """``m``: chunks of the initialization (fewer when the sequence is shorter)."""
+        return min(self.cfg.init.num_frames, self.data.n_chunks)

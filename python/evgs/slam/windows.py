@@ -1,0 +1,121 @@
+"""The event side of an optimisation step: a sequence's events cut into chunks at frame timestamps, event
+windows drawn by the Rust sampler over an index range, and their event frames from Rust accumulation.
+
+A window ``[start, end)`` is observed between the timestamps of its first and last event; the frame
+``E = C·Σp`` is what the renders at those two times must explain. At a coarse level ``f`` the frame sums
+``f×f`` pixel blocks, so it is divided by ``f²`` to stay a per-pixel log-intensity change, and the camera
+is the same pinhole with its intrinsics scaled by ``1/f``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from evgs.config import DataConfig
+from evgs.data.sequence import Camera, Sequence
+from evgs.events.arrays import EventArray
+from evgs.events.frames import UndistortMap, WindowSampler, accumulate, chunk_ranges
+
+
+@dataclass(frozen=True)
+class Windows:
+    """A batch of B event windows and their event frames."""
+
+    starts: np.ndarray  # (B,) int64 first event index
+    ends: np.ndarray  # (B,) int64 one past the last event
+    t_start: np.ndarray  # (B,) µs of the first event
+    t_end: np.ndarray  # (B,) µs of the last event
+    frames: Tensor  # (B, h, w) float32 event frames E at the level's resolution
+
+    @property
+    def n_events(self) -> int:
+        return int((self.ends - self.starts).sum())
+
+
+def scaled_camera(camera: Camera, factor: int) -> Camera:
+    """The pinhole camera of a ``factor``-times downsampled image (``ceil`` size, as accumulation)."""
+    if factor == 1:
+        return camera
+    return replace(
+        camera,
+        width=math.ceil(camera.width / factor),
+        height=math.ceil(camera.height / factor),
+        fx=camera.fx / factor,
+        fy=camera.fy / factor,
+        cx=camera.cx / factor,
+        cy=camera.cy / factor,
+    )
+
+
+@dataclass
+class EventData:
+    """Events and chunks of the frames a run uses (``data.start_frame``, ``data.num_frames``)."""
+
+    events: EventArray
+    frames_us: np.ndarray  # (F,) frame timestamps used; chunk k lies between frames k and k+1
+    chunks: np.ndarray  # (F-1, 2) half-open event index ranges
+    camera: Camera
+    contrast: float
+    cfg: DataConfig
+    undistort: UndistortMap | None = None
+    dropped: int = field(default=0)  # events undistorted outside the image, over every frame made
+
+    @classmethod
+    def from_sequence(cls, seq: Sequence, cfg: DataConfig) -> EventData:
+        frames = seq.frames_us()
+        first = cfg.start_frame
+        last = len(frames) if cfg.num_frames == 0 else min(len(frames), first + cfg.num_frames + 1)
+        frames = frames[first:last]
+        if len(frames) < 2:
+            raise ValueError(
+                f"{seq.root / 'frames.csv'}: data.start_frame = {cfg.start_frame} leaves "
+                f"{len(frames)} frame(s); at least 2 are needed for one chunk of events"
+            )
+        events = seq.events()
+        undistort = UndistortMap.from_camera(seq.camera) if any(seq.camera.distortion) else None
+        return cls(
+            events, frames, chunk_ranges(events.t, frames), seq.camera, cfg.event_contrast, cfg, undistort
+        )
+
+    @property
+    def n_chunks(self) -> int:
+        return len(self.chunks)
+
+    def span(self, first: int, stop: int) -> tuple[int, int]:
+        """Event index range of chunks ``first .. stop-1``."""
+        return int(self.chunks[first, 0]), int(self.chunks[stop - 1, 1])
+
+    def span_with_min(self, first: int, stop: int) -> tuple[int, int]:
+        """Like :meth:`span`, extended backwards by whole chunks (not before chunk 0) until it holds at
+        least ``min_n_winsize`` events, so a sparse chunk can still be sampled."""
+        while first > 0 and self.span(first, stop)[1] - self.span(first, stop)[0] < self.cfg.min_n_winsize:
+            first -= 1
+        return self.span(first, stop)
+
+    def sampler(self, span: tuple[int, int], seed: int) -> WindowSampler:
+        c = self.cfg
+        try:
+            return WindowSampler(span, c.min_n_winsize, c.max_n_winsize, seed, c.window_mode, c.seg_num)
+        except ValueError as e:
+            raise ValueError(
+                f"events {span[0]}..{span[1]} ({span[1] - span[0]} events): {e}; lower data.min_n_winsize"
+            ) from None
+
+    def frames_of(self, starts: np.ndarray, ends: np.ndarray, factor: int = 1) -> Tensor:
+        """(B, h, w) event frames of the windows at level ``factor`` (dropped events are counted)."""
+        frames, dropped = accumulate(
+            self.events, starts, ends, c_on=self.contrast, undistort=self.undistort,
+            downsample=factor, return_dropped=True,
+        )  # fmt: skip
+        self.dropped += int(dropped.sum())
+        return torch.from_numpy(frames) / float(factor * factor)
+
+    def windows(self, sampler: WindowSampler, batch: int, factor: int = 1) -> Windows:
+        starts, ends = sampler.sample(batch)
+        t = self.events.t
+        return Windows(starts, ends, t[starts], t[ends - 1], self.frames_of(starts, ends, factor))
