@@ -8,7 +8,6 @@ An adapter module has ``DESCRIPTION``, ``RAW_PATH_HELP``, ``add_arguments(parser
 
 from __future__ import annotations
 
-import shutil
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -194,35 +193,17 @@ def image_size(path: Path) -> tuple[int, int]:
 
 
 def write_imported(seq: Imported, out: Path, progress: Progress) -> Sequence:
-    """Write ``seq`` to ``out`` as a canonical sequence folder, all or nothing: everything goes to a
-    hidden staging folder beside ``out`` that replaces ``out`` only once complete."""
-    out = Path(out)
-    stage = out.with_name(f".{out.name}.import")
-    if stage.exists():
-        shutil.rmtree(stage)
-    stage.mkdir(parents=True)
-    try:
-        root = stage / out.name
-        images = None
-        if seq.images is not None:
-            task = progress.add_task("writing images", total=len(seq.images))
-            images = _track_images(seq.images, seq.camera, progress, task)
-        meta = seq.meta if images is None else {**seq.meta, "images": IMAGE_NOTE}
-        write_sequence(
-            root, seq.name, seq.camera, seq.events, seq.frames_us, poses_gt=seq.poses_gt,
-            images=images, range_samples=seq.range_samples, meta=meta,
-        )  # fmt: skip
-        for name, df in seq.tables.items():
-            df.write_csv(root / name)
-        old = out.with_name(f".{out.name}.old")
-        shutil.rmtree(old, ignore_errors=True)
-        if out.exists():
-            out.rename(old)
-        root.rename(out)
-        shutil.rmtree(old, ignore_errors=True)
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
-    return Sequence.load(out)
+    """Write ``seq`` to ``out`` as a canonical sequence folder (all or nothing, see ``write_sequence``),
+    reading the images one at a time."""
+    images = None
+    if seq.images is not None:
+        task = progress.add_task("writing images", total=len(seq.images))
+        images = _track_images(seq.images, seq.camera, progress, task)
+    meta = seq.meta if images is None else {**seq.meta, "images": IMAGE_NOTE}
+    return write_sequence(
+        out, seq.name, seq.camera, seq.events, seq.frames_us, poses_gt=seq.poses_gt,
+        images=images, range_samples=seq.range_samples, meta=meta, tables=seq.tables,
+    )  # fmt: skip
 
 
 def _track_images(paths: list[Path], camera: Camera, progress: Progress, task) -> Iterator[np.ndarray]:

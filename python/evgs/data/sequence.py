@@ -14,6 +14,7 @@ range.csv        optional, t_us,range_m (range finder along the optical axis)
 from __future__ import annotations
 
 import shutil
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -134,14 +135,18 @@ def write_sequence(
     frames_us: np.ndarray,
     *,
     poses_gt: tuple[np.ndarray, np.ndarray] | None = None,
-    images: np.ndarray | None = None,
+    images: Iterable[np.ndarray] | None = None,
     range_samples: tuple[np.ndarray, np.ndarray] | None = None,
     meta: dict | None = None,
+    tables: Mapping[str, pl.DataFrame] | None = None,
 ) -> Sequence:
-    """Write a complete sequence folder. Everything goes to a temporary sibling folder first, which is
-    renamed into place at the end, so an interrupted write never leaves a half sequence behind.
+    """Write a complete sequence folder, all or nothing: everything goes to a hidden sibling folder that
+    replaces ``root`` only once complete, so an interrupted or failed write leaves any previous sequence
+    untouched and never a half one.
 
-    ``poses_gt`` is ``(t_us, T_wc)``; ``images`` is (F, H, W) float in [0, 1] aligned with ``frames_us``.
+    ``poses_gt`` is ``(t_us, T_wc)``; ``images`` yields (H, W) floats in [0, 1] aligned with ``frames_us``
+    (an array or a generator, so importers can stream them); ``tables`` are extra CSV files by name
+    (e.g. ``velocities_gt.csv``).
     """
     root = Path(root)
     tmp = root.with_name(f".{root.name}.partial")
@@ -163,9 +168,14 @@ def write_sequence(
                 cv2.imwrite(str(tmp / "images" / f"{i:06d}.png"), png)
         if range_samples is not None:
             pl.DataFrame({"t_us": range_samples[0], "range_m": range_samples[1]}).write_csv(tmp / "range.csv")
+        for file_name, df in (tables or {}).items():
+            df.write_csv(tmp / file_name)
+        old = root.with_name(f".{root.name}.old")
+        shutil.rmtree(old, ignore_errors=True)
         if root.exists():
-            shutil.rmtree(root)
+            root.rename(old)
         tmp.rename(root)
+        shutil.rmtree(old, ignore_errors=True)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
