@@ -146,18 +146,38 @@ struct Seg<const NC: usize> {
     color: [Lanes; NC],
     depth: Lanes,
     last: [u32; LANES],
+    /// 1 + the tile-list index of the splat at which the pixel stopped (0 = it never stopped).
+    stop_at: [u32; LANES],
     /// 1 once a pixel has stopped (or lies outside the image).
     done: [u32; LANES],
 }
 
-/// Composite one tile; returns the number of pixel–splat evaluations performed.
-pub(crate) fn render_tile<const NC: usize>(job: &TileJob, out: TileOut) -> u64 {
+/// Pixel–splat evaluations of one tile, counted two ways (see [`crate::raster::Forward::evaluations`]).
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct TileCounts {
+    /// Pixels of the row segments actually evaluated (what this rasterizer computes).
+    pub segments: u64,
+    /// The standard (3DGS/gsplat) count: per in-image pixel, the tile-list entries up to and including
+    /// the one at which it stopped, or the whole list.
+    pub standard: u64,
+}
+
+impl std::ops::Add for TileCounts {
+    type Output = Self;
+    fn add(self, o: Self) -> Self {
+        TileCounts { segments: self.segments + o.segments, standard: self.standard + o.standard }
+    }
+}
+
+/// Composite one tile; returns the pixel–splat evaluations performed.
+pub(crate) fn render_tile<const NC: usize>(job: &TileJob, out: TileOut) -> TileCounts {
     let px = lane_centres(job.x0);
     let mut segs = [[Seg::<NC> {
         t: [1.0; LANES],
         color: [[0.0; LANES]; NC],
         depth: [0.0; LANES],
         last: [0; LANES],
+        stop_at: [0; LANES],
         done: [1; LANES],
     }; SEGS]; TILE];
     let mut alive = [[false; SEGS]; TILE];
@@ -202,8 +222,14 @@ pub(crate) fn render_tile<const NC: usize>(job: &TileJob, out: TileOut) -> u64 {
         }
         start = end;
     }
+    let list_len = job.ids.len() as u64;
+    let mut standard = 0u64;
     for (r, row) in segs.iter().enumerate() {
         for (h, seg) in row.iter().enumerate() {
+            if r < job.rows {
+                let stops = seg.stop_at.iter().take(job.seg_lanes(h));
+                standard += stops.map(|&k| if k > 0 { u64::from(k) } else { list_len }).sum::<u64>();
+            }
             let lanes = r * TILE + h * LANES..r * TILE + (h + 1) * LANES;
             for (ch, plane) in seg.color.iter().enumerate() {
                 out.color[ch * TILE * TILE..][lanes.clone()].copy_from_slice(plane);
@@ -213,7 +239,7 @@ pub(crate) fn render_tile<const NC: usize>(job: &TileJob, out: TileOut) -> u64 {
             out.last[lanes].copy_from_slice(&seg.last);
         }
     }
-    evaluations
+    TileCounts { segments: evaluations, standard }
 }
 
 /// One splat over one 8-lane segment; branch-free so that it compiles to vector selects.
@@ -242,6 +268,7 @@ fn composite_seg<const NC: usize>(
         seg.depth[l] += s.z * w;
         seg.t[l] = if take { t_next } else { seg.t[l] };
         seg.last[l] = if take { k1 } else { seg.last[l] };
+        seg.stop_at[l] = if stop { k1 } else { seg.stop_at[l] };
         seg.done[l] |= u32::from(stop);
     }
 }
