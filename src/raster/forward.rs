@@ -38,7 +38,7 @@ impl RowTerms {
 /// The one definition used by forward and backward, so both see identical bits.
 #[inline(always)]
 pub(crate) fn alpha_at(s: &Splat, row: &RowTerms, dx: f32) -> (f32, f32, f32) {
-    let sigma = dx * (row.half_a * dx + row.b_dy) + row.half_c_dy2;
+    let sigma = dx.mul_add(row.half_a.mul_add(dx, row.b_dy), row.half_c_dy2);
     let g = fastmath::exp(-sigma);
     let og = s.opacity * g;
     (sigma, g, if og < ALPHA_MAX { og } else { ALPHA_MAX })
@@ -71,16 +71,30 @@ pub(crate) struct TileJob<'a> {
     pub colors: &'a [f32],
 }
 
+/// A hint to load the cache line holding `x` (a no-op where there is no prefetch instruction).
+#[inline(always)]
+fn prefetch<T>(x: &T) {
+    // SAFETY: a prefetch never faults and has no architectural effect; the pointer is a valid reference.
+    #[cfg(target_arch = "x86_64")]
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>((x as *const T).cast())
+    };
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = x;
+}
+
 /// Splats handled per gather: the splats of a tile list sit at random places in memory, and copying a
 /// batch of them in one tight loop lets the loads overlap instead of stalling the compositing loop.
 pub(crate) const BATCH: usize = 64;
 
 impl TileJob<'_> {
-    /// Copy the splats and colours of tile-list positions `range` into `splats` and `colors`.
+    /// Copy the splats and colours of tile-list positions `range` into `splats` and `colors`, and ask
+    /// for the cache lines of the batch to come (`next`), so that they arrive while this one composites.
     #[inline]
     pub fn gather<const NC: usize>(
         &self,
         range: std::ops::Range<usize>,
+        next: std::ops::Range<usize>,
         splats: &mut Vec<Splat>,
         colors: &mut Vec<[f32; NC]>,
     ) {
@@ -90,6 +104,11 @@ impl TileJob<'_> {
             let g = g as usize;
             splats.push(self.splats[g].splat);
             colors.push(std::array::from_fn(|ch| self.colors[g * NC + ch]));
+        }
+        for &g in &self.ids[next] {
+            let g = g as usize;
+            prefetch(&self.splats[g]);
+            prefetch(&self.colors[g * NC]);
         }
     }
 
@@ -195,7 +214,7 @@ pub(crate) fn render_tile<const NC: usize>(job: &TileJob, out: TileOut) -> TileC
     let mut start = 0;
     while start < job.ids.len() && alive_count > 0 {
         let end = job.ids.len().min(start + BATCH);
-        job.gather::<NC>(start..end, &mut splats, &mut colors);
+        job.gather::<NC>(start..end, end..job.ids.len().min(end + BATCH), &mut splats, &mut colors);
         for (j, (&s, &col)) in splats.iter().zip(&colors).enumerate() {
             if alive_count == 0 {
                 break;
