@@ -1,11 +1,15 @@
 """Rasterizer benchmark (not a test): forward and backward time per view and pixel–Gaussian evaluations
 per second for the Rust rasterizer, 1 and 2 threads, beside the dense float32 torch reference.
 
-A "pixel–Gaussian evaluation" is one (pixel, Gaussian) pair whose alpha the rasterizer computed: for
-each tile and each splat in its depth-sorted list until the tile's pixels all stopped, the in-image
-pixels of the 8-pixel row segments (one AVX2 register) that intersect the splat's extent and still had
-a live pixel (``raster::Forward::evaluations``). The dense reference evaluates every Gaussian at every
-pixel; it is compared by wall time for the same image (the speed-up column).
+Pixel–Gaussian evaluations are counted two ways, side by side:
+- "std" (the standard 3DGS/gsplat count, the sense of the speed targets): forward, every in-image pixel ×
+  every entry of its tile's depth-sorted list up to and including the one at which the pixel saturated
+  (or the whole list); backward, every pixel × the entries up to and including its last contributor.
+- "seg" (what this rasterizer really computes): for each tile and each splat in its list until the
+  tile's pixels all stopped, the in-image pixels of the 8-pixel row segments (one AVX2 register) that
+  the splat's ellipse reaches and that still had a live pixel (``raster::Forward::evaluations``).
+The dense reference evaluates every Gaussian at every pixel; it is compared by wall time for the same
+image (the speed-up column).
 
 Run: ``make dev && PYTHONPATH=python:tests $VENV/bin/python benches/raster_bench.py [--quick]``
 """
@@ -111,6 +115,8 @@ def measure_rust(quick: bool) -> list[dict]:
                 {"n": n, "w": w, "h": h, "fwd_ms": fwd_ms, "bwd_ms": bwd_ms,
                  "fwd_cpu": fwd_cpu, "bwd_cpu": bwd_cpu,
                  "fwd_evals": out[4].forward_evaluations, "bwd_evals": int(bwd_evals),
+                 "fwd_std": out[4].forward_evaluations_standard,
+                 "bwd_std": out[4].backward_evaluations_standard,
                  "coverage": float(out[2].mean())}
             )  # fmt: skip
     return rows
@@ -160,29 +166,41 @@ def main() -> None:
     ref = {(w, h): measure_reference(w, h) for w, h in SIZES}
 
     print(f"CPU: {cpu_model()}, {os.cpu_count()} logical CPUs; load average {os.getloadavg()[0]:.1f}")
-    print("evals = pixel–Gaussian pairs evaluated (see module docstring); G/s = evals per wall second at")
-    print("2 threads; 'cpu' = CPU ms of the 1-thread run (meaningful when the machine is shared);")
-    print(f"dense torch float32 reference: extrapolated linearly from {REF_SUBSET} Gaussians\n")
+    print("evals: 'std' = standard 3DGS/gsplat count, 'seg' = pairs this rasterizer evaluates (module")
+    print(
+        "docstring); G/s = G evals per wall second (std/seg) with 1 thread (1T) and 2 threads (2T); 'cpu' ="
+    )
+    print("CPU ms of the 1-thread run (meaningful when the machine is shared); dense torch float32 reference")
+    print(
+        f"extrapolated linearly from {REF_SUBSET} Gaussians; speed-up = dense / Rust 2T, forward/backward\n"
+    )
     head = (
-        f"{'image':>8} {'N':>8} {'cover':>5} {'fwd evals':>9} | {'fwd ms 1T':>9} {'cpu':>7} {'2T':>7} "
-        f"{'G/s':>5} | {'bwd ms 1T':>9} {'cpu':>7} {'2T':>7} {'G/s':>5} | "
-        f"{'dense fwd ms':>12} {'bwd ms':>9} | {'speed-up':>12}"
+        f"{'image':>7} {'N':>7} {'cov':>4} | {'fwd evals std/seg':>17} {'ms 1T':>7} {'cpu':>6} {'2T':>6} "
+        f"{'G/s 1T':>9} {'G/s 2T':>9} | {'bwd evals std/seg':>17} {'ms 1T':>7} {'cpu':>6} {'2T':>6} "
+        f"{'G/s 1T':>9} {'G/s 2T':>9} | {'dense fwd/bwd ms':>16} | {'speed-up':>10}"
     )
     print(head)
     print("-" * len(head))
+
+    def rate(evals: int, ms: float) -> str:
+        return f"{evals / ms / 1e6:.2f}"
+
     for r1, r2 in zip(results[1], results[2], strict=True):
         rf, rb = ref[(r2["w"], r2["h"])]
         scale = r2["n"] / REF_SUBSET
         dense_f, dense_b = rf * scale, rb * scale
-        print(
-            f"{r2['w']:>4}x{r2['h']:<3} {r2['n']:>8} {r2['coverage']:>5.2f} {r2['fwd_evals'] / 1e6:>8.1f}M | "
-            f"{r1['fwd_ms']:>9.2f} {r1['fwd_cpu']:>7.2f} {r2['fwd_ms']:>7.2f} "
-            f"{r2['fwd_evals'] / r2['fwd_ms'] / 1e6:>5.2f} | "
-            f"{r1['bwd_ms']:>9.2f} {r1['bwd_cpu']:>7.2f} {r2['bwd_ms']:>7.2f} "
-            f"{r2['bwd_evals'] / r2['bwd_ms'] / 1e6:>5.2f} | "
-            f"{dense_f:>12.0f} {dense_b:>9.0f} | "
-            f"{dense_f / r2['fwd_ms']:>5.0f}x/{dense_b / r2['bwd_ms']:>4.0f}x"
-        )
+        cols = [f"{r2['w']:>3}x{r2['h']:<3} {r2['n']:>7} {r2['coverage']:>4.2f}"]
+        for d in ("fwd", "bwd"):
+            std, seg = r2[f"{d}_std"], r2[f"{d}_evals"]
+            cols.append(
+                f"{std / 1e6:>7.1f}M/{seg / 1e6:>6.1f}M {r1[f'{d}_ms']:>7.2f} {r1[f'{d}_cpu']:>6.2f} "
+                f"{r2[f'{d}_ms']:>6.2f} "
+                f"{rate(std, r1[f'{d}_ms']):>4}/{rate(seg, r1[f'{d}_ms']):<4} "
+                f"{rate(std, r2[f'{d}_ms']):>4}/{rate(seg, r2[f'{d}_ms']):<4}"
+            )
+        cols.append(f"{dense_f:>8.0f}/{dense_b:<7.0f}")
+        cols.append(f"{dense_f / r2['fwd_ms']:>5.0f}x/{dense_b / r2['bwd_ms']:<4.0f}x")
+        print(" | ".join(cols))
 
 
 if __name__ == "__main__":

@@ -149,6 +149,10 @@ class RasterState:
 
     @property
     def forward_evaluations(self) -> int: ...
+    @property
+    def forward_evaluations_standard(self) -> int: ...
+    @property
+    def backward_evaluations_standard(self) -> int: ...
 
 def rasterize_forward(
     means: _F32,

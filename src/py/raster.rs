@@ -22,6 +22,20 @@ impl RasterState {
     fn forward_evaluations(&self) -> u64 {
         self.inner.forward_evaluations
     }
+
+    /// Forward evaluations in the standard (3DGS/gsplat) sense: every pixel × its tile's list entries
+    /// until it saturated.
+    #[getter]
+    fn forward_evaluations_standard(&self) -> u64 {
+        self.inner.forward_evaluations_standard
+    }
+
+    /// Backward evaluations in the standard sense: every pixel × its list entries up to its last
+    /// contributor.
+    #[getter]
+    fn backward_evaluations_standard(&self) -> u64 {
+        self.inner.backward_evaluations_standard
+    }
 }
 
 type Array<'py> = PyReadonlyArray1<'py, f32>;

@@ -88,7 +88,7 @@ pub(crate) fn backward_tile<const NC: usize>(
     let mut end = k_end;
     while end > 0 {
         let start = end.saturating_sub(BATCH);
-        job.gather::<NC>(start..end, &mut splats, &mut colors);
+        job.gather::<NC>(start..end, start.saturating_sub(BATCH)..start, &mut splats, &mut colors);
         for (j, (&s, &col)) in splats.iter().zip(&colors).enumerate().rev() {
             let k = start + j;
             // (Copies: locals that provably do not alias the tile state keep the lane loop vectorised.)

@@ -38,7 +38,7 @@ impl RowTerms {
 /// The one definition used by forward and backward, so both see identical bits.
 #[inline(always)]
 pub(crate) fn alpha_at(s: &Splat, row: &RowTerms, dx: f32) -> (f32, f32, f32) {
-    let sigma = dx * (row.half_a * dx + row.b_dy) + row.half_c_dy2;
+    let sigma = dx.mul_add(row.half_a.mul_add(dx, row.b_dy), row.half_c_dy2);
     let g = fastmath::exp(-sigma);
     let og = s.opacity * g;
     (sigma, g, if og < ALPHA_MAX { og } else { ALPHA_MAX })
@@ -71,16 +71,30 @@ pub(crate) struct TileJob<'a> {
     pub colors: &'a [f32],
 }
 
+/// A hint to load the cache line holding `x` (a no-op where there is no prefetch instruction).
+#[inline(always)]
+fn prefetch<T>(x: &T) {
+    // SAFETY: a prefetch never faults and has no architectural effect; the pointer is a valid reference.
+    #[cfg(target_arch = "x86_64")]
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>((x as *const T).cast())
+    };
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = x;
+}
+
 /// Splats handled per gather: the splats of a tile list sit at random places in memory, and copying a
 /// batch of them in one tight loop lets the loads overlap instead of stalling the compositing loop.
 pub(crate) const BATCH: usize = 64;
 
 impl TileJob<'_> {
-    /// Copy the splats and colours of tile-list positions `range` into `splats` and `colors`.
+    /// Copy the splats and colours of tile-list positions `range` into `splats` and `colors`, and ask
+    /// for the cache lines of the batch to come (`next`), so that they arrive while this one composites.
     #[inline]
     pub fn gather<const NC: usize>(
         &self,
         range: std::ops::Range<usize>,
+        next: std::ops::Range<usize>,
         splats: &mut Vec<Splat>,
         colors: &mut Vec<[f32; NC]>,
     ) {
@@ -90,6 +104,11 @@ impl TileJob<'_> {
             let g = g as usize;
             splats.push(self.splats[g].splat);
             colors.push(std::array::from_fn(|ch| self.colors[g * NC + ch]));
+        }
+        for &g in &self.ids[next] {
+            let g = g as usize;
+            prefetch(&self.splats[g]);
+            prefetch(&self.colors[g * NC]);
         }
     }
 
@@ -146,18 +165,38 @@ struct Seg<const NC: usize> {
     color: [Lanes; NC],
     depth: Lanes,
     last: [u32; LANES],
+    /// 1 + the tile-list index of the splat at which the pixel stopped (0 = it never stopped).
+    stop_at: [u32; LANES],
     /// 1 once a pixel has stopped (or lies outside the image).
     done: [u32; LANES],
 }
 
-/// Composite one tile; returns the number of pixel–splat evaluations performed.
-pub(crate) fn render_tile<const NC: usize>(job: &TileJob, out: TileOut) -> u64 {
+/// Pixel–splat evaluations of one tile, counted two ways (see [`crate::raster::Forward::evaluations`]).
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct TileCounts {
+    /// Pixels of the row segments actually evaluated (what this rasterizer computes).
+    pub segments: u64,
+    /// The standard (3DGS/gsplat) count: per in-image pixel, the tile-list entries up to and including
+    /// the one at which it stopped, or the whole list.
+    pub standard: u64,
+}
+
+impl std::ops::Add for TileCounts {
+    type Output = Self;
+    fn add(self, o: Self) -> Self {
+        TileCounts { segments: self.segments + o.segments, standard: self.standard + o.standard }
+    }
+}
+
+/// Composite one tile; returns the pixel–splat evaluations performed.
+pub(crate) fn render_tile<const NC: usize>(job: &TileJob, out: TileOut) -> TileCounts {
     let px = lane_centres(job.x0);
     let mut segs = [[Seg::<NC> {
         t: [1.0; LANES],
         color: [[0.0; LANES]; NC],
         depth: [0.0; LANES],
         last: [0; LANES],
+        stop_at: [0; LANES],
         done: [1; LANES],
     }; SEGS]; TILE];
     let mut alive = [[false; SEGS]; TILE];
@@ -175,7 +214,7 @@ pub(crate) fn render_tile<const NC: usize>(job: &TileJob, out: TileOut) -> u64 {
     let mut start = 0;
     while start < job.ids.len() && alive_count > 0 {
         let end = job.ids.len().min(start + BATCH);
-        job.gather::<NC>(start..end, &mut splats, &mut colors);
+        job.gather::<NC>(start..end, end..job.ids.len().min(end + BATCH), &mut splats, &mut colors);
         for (j, (&s, &col)) in splats.iter().zip(&colors).enumerate() {
             if alive_count == 0 {
                 break;
@@ -202,8 +241,14 @@ pub(crate) fn render_tile<const NC: usize>(job: &TileJob, out: TileOut) -> u64 {
         }
         start = end;
     }
+    let list_len = job.ids.len() as u64;
+    let mut standard = 0u64;
     for (r, row) in segs.iter().enumerate() {
         for (h, seg) in row.iter().enumerate() {
+            if r < job.rows {
+                let stops = seg.stop_at.iter().take(job.seg_lanes(h));
+                standard += stops.map(|&k| if k > 0 { u64::from(k) } else { list_len }).sum::<u64>();
+            }
             let lanes = r * TILE + h * LANES..r * TILE + (h + 1) * LANES;
             for (ch, plane) in seg.color.iter().enumerate() {
                 out.color[ch * TILE * TILE..][lanes.clone()].copy_from_slice(plane);
@@ -213,7 +258,7 @@ pub(crate) fn render_tile<const NC: usize>(job: &TileJob, out: TileOut) -> u64 {
             out.last[lanes].copy_from_slice(&seg.last);
         }
     }
-    evaluations
+    TileCounts { segments: evaluations, standard }
 }
 
 /// One splat over one 8-lane segment; branch-free so that it compiles to vector selects.
@@ -242,6 +287,7 @@ fn composite_seg<const NC: usize>(
         seg.depth[l] += s.z * w;
         seg.t[l] = if take { t_next } else { seg.t[l] };
         seg.last[l] = if take { k1 } else { seg.last[l] };
+        seg.stop_at[l] = if stop { k1 } else { seg.stop_at[l] };
         seg.done[l] |= u32::from(stop);
     }
 }

@@ -20,7 +20,7 @@ pub use camera::{Camera, TILE};
 use crate::error::{Error, Result};
 use backward::{backward_tile, TileGradIn};
 use camera::View;
-use forward::{render_tile, TileJob, TileOut};
+use forward::{render_tile, TileCounts, TileJob, TileOut};
 use project::{project, project_backward, Params, Projected, SplatGrad};
 use tiles::{bin, pairs_by_splat, split_by_offsets, Bins};
 
@@ -103,6 +103,12 @@ pub struct RasterState {
     views: Vec<ViewState>,
     /// Pixel–Gaussian evaluations of the forward pass (see [`Forward::evaluations`]).
     pub forward_evaluations: u64,
+    /// The same in the standard (3DGS/gsplat) sense: every in-image pixel × every entry of its tile's
+    /// depth-sorted list, up to and including the one at which the pixel saturated.
+    pub forward_evaluations_standard: u64,
+    /// The backward pass's standard count: every in-image pixel × the list entries up to and including
+    /// its last contributor (the ones a gsplat-style backward visits for it).
+    pub backward_evaluations_standard: u64,
 }
 
 impl RasterState {
@@ -129,6 +135,7 @@ impl Forward {
     /// tile and every splat in its list until the tile stopped, the in-image pixels of the 8-pixel
     /// row segments that intersect the splat's extent and still had a live pixel. (The backward pass
     /// counts the same way, over segments with a pixel the splat was composited into or in front of.)
+    /// This is fewer than the standard count, [`RasterState::forward_evaluations_standard`].
     pub fn evaluations(&self) -> u64 {
         self.state.forward_evaluations
     }
@@ -223,11 +230,12 @@ pub fn forward(gs: &Gaussians, viewmats: &[f32], cam: &Camera, background: &[f32
         .zip(last.iter_mut().flat_map(|v| v.chunks_mut(AREA)))
         .map(|(((color, depth), t_final), last)| TileOut { color, depth, t_final, last })
         .collect();
-    let evaluations: u64 = jobs
+    let counts = jobs
         .par_iter()
         .zip(outs.into_par_iter())
         .map(|(job, out)| with_channels!(nc, render_tile, job, out))
-        .sum();
+        .reduce(TileCounts::default, |a, b| a + b);
+    let backward_standard = last.iter().flatten().map(|&k| u64::from(k)).sum();
     for ((v, t), l) in views.iter_mut().zip(t_final).zip(last) {
         v.t_final = t;
         v.last = l;
@@ -262,7 +270,9 @@ pub fn forward(gs: &Gaussians, viewmats: &[f32], cam: &Camera, background: &[f32
         num_gaussians: gs.len(),
         background: background.to_vec(),
         views,
-        forward_evaluations: evaluations,
+        forward_evaluations: counts.segments,
+        forward_evaluations_standard: counts.standard,
+        backward_evaluations_standard: backward_standard,
     };
     Ok(Forward { color, depth, alpha, radii, state })
 }
@@ -506,6 +516,33 @@ mod tests {
         assert!(one.iter().any(|&b| b != 0));
         assert_eq!(one, with(2));
         assert_eq!(one, with(3));
+    }
+
+    /// Three huge opaque splats: every pixel composites the first (alpha clamped to 0.99), saturates at
+    /// the second and never sees the third, so both counts are known exactly.
+    #[test]
+    fn evaluation_counts() {
+        let means = [0.0, 0.0, 2.0, 0.0, 0.0, 3.0, 0.0, 0.0, 4.0];
+        let quats = [1.0, 0.0, 0.0, 0.0].repeat(3);
+        let gs = Gaussians {
+            means: &means,
+            log_scales: &[4.0; 9],
+            quats: &quats,
+            opacities: &[0.999; 3],
+            colors: &[0.5; 3],
+            channels: 1,
+        };
+        let f = forward(&gs, &VIEWS[..16], &CAM, &[0.0]).unwrap();
+        let pixels = CAM.num_pixels() as u64;
+        assert!(f.alpha.iter().all(|&a| (a - 0.99).abs() < 1e-6));
+        assert_eq!(f.evaluations(), 2 * pixels);
+        assert_eq!(f.state.forward_evaluations_standard, 2 * pixels);
+        assert_eq!(f.state.backward_evaluations_standard, pixels);
+        // Behind a translucent splat nothing saturates: every pixel walks the whole list.
+        let ops = [0.5, 0.5, 0.5];
+        let f = forward(&Gaussians { opacities: &ops, ..gs }, &VIEWS[..16], &CAM, &[0.0]).unwrap();
+        assert_eq!(f.state.forward_evaluations_standard, 3 * pixels);
+        assert_eq!(f.state.backward_evaluations_standard, 3 * pixels);
     }
 
     #[test]
