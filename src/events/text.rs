@@ -647,8 +647,8 @@ impl TextDecoder {
         };
         let pieces = split_at_lines(data, 4 * rayon::current_num_threads());
         let chunks: Vec<Chunk> = pieces.par_iter().map(|p| parser.parse_chunk(p)).collect();
-        for c in chunks {
-            if let Some((line, msg)) = c.error {
+        for c in &chunks {
+            if let Some((line, msg)) = &c.error {
                 return Err(Error::format(&self.path, format!("line {}", self.lines + line), msg));
             }
             if let (true, Some(last), Some(&t0)) = (self.require_sorted, self.last, c.events.t.first()) {
@@ -664,8 +664,16 @@ impl TextDecoder {
                 self.last = Some(t);
             }
             self.lines += c.lines;
-            out.extend(&c.events);
         }
+        // Gather the chunks into the output in parallel (a serial copy would cost as much as parsing).
+        let old = out.append_zeroed(chunks.iter().map(|c| c.events.len()).sum());
+        let parts = out.split_mut(old, chunks.iter().map(|c| c.events.len()));
+        chunks.par_iter().zip(parts).for_each(|(c, part)| {
+            part.t.copy_from_slice(&c.events.t);
+            part.x.copy_from_slice(&c.events.x);
+            part.y.copy_from_slice(&c.events.y);
+            part.p.copy_from_slice(&c.events.p);
+        });
         Ok(())
     }
 }
