@@ -111,6 +111,20 @@ impl Events {
         parts
     }
 
+    /// Append the events of `parts` in order, copying them in parallel (a serial gather would cost as
+    /// much as the parallel decode that produced them).
+    pub fn append_all<'a>(&mut self, parts: impl IntoIterator<Item = &'a Events>) {
+        let parts: Vec<&Events> = parts.into_iter().collect();
+        let old = self.append_zeroed(parts.iter().map(|e| e.len()).sum());
+        let dest = self.split_mut(old, parts.iter().map(|e| e.len()));
+        parts.into_par_iter().zip(dest).for_each(|(src, dst)| {
+            dst.t.copy_from_slice(&src.t);
+            dst.x.copy_from_slice(&src.x);
+            dst.y.copy_from_slice(&src.y);
+            dst.p.copy_from_slice(&src.p);
+        });
+    }
+
     /// Drop events from index `len` on.
     pub fn truncate(&mut self, len: usize) {
         self.t.truncate(len);

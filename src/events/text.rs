@@ -665,15 +665,7 @@ impl TextDecoder {
             }
             self.lines += c.lines;
         }
-        // Gather the chunks into the output in parallel (a serial copy would cost as much as parsing).
-        let old = out.append_zeroed(chunks.iter().map(|c| c.events.len()).sum());
-        let parts = out.split_mut(old, chunks.iter().map(|c| c.events.len()));
-        chunks.par_iter().zip(parts).for_each(|(c, part)| {
-            part.t.copy_from_slice(&c.events.t);
-            part.x.copy_from_slice(&c.events.x);
-            part.y.copy_from_slice(&c.events.y);
-            part.p.copy_from_slice(&c.events.p);
-        });
+        out.append_all(chunks.iter().map(|c| &c.events));
         Ok(())
     }
 }
