@@ -190,19 +190,25 @@ impl EventReader {
                 let off = layout.data_offset;
                 (AnyDecoder::Npy(NpyDecoder::new(path, layout)), off, t.width, t.height)
             }
+            // With drop_outside the camera decoders do not bound coordinates (the reader drops and
+            // counts); otherwise they fail naming the byte offset.
             Format::Evt2 | Format::Evt3 => {
                 let h = parse_raw_header(&head, path)?;
                 let (w, hh) = if t.width > 0 { (t.width, t.height) } else { (h.width, h.height) };
+                let (dw, dh) = if opts.drop_outside { (0, 0) } else { (w, hh) };
                 let d = if format == Format::Evt2 {
-                    AnyDecoder::Evt2(Evt2Decoder::new(path, w, hh, opts.time_shift))
+                    AnyDecoder::Evt2(Evt2Decoder::new(path, dw, dh, opts.time_shift))
                 } else {
-                    AnyDecoder::Evt3(Evt3Decoder::new(path, w, hh, opts.time_shift))
+                    AnyDecoder::Evt3(Evt3Decoder::new(path, dw, dh, opts.time_shift))
                 };
                 (d, h.data_offset, w, hh)
             }
             Format::Aedat4 => {
-                let h = parse_aedat4_header(&head, path)?;
+                let mut h = parse_aedat4_header(&head, path)?;
                 let (w, hh) = if t.width > 0 { (t.width, t.height) } else { (h.width, h.height) };
+                if opts.drop_outside {
+                    (h.width, h.height) = (0, 0);
+                }
                 (AnyDecoder::Aedat4(Aedat4Decoder::new(path, &h)), h.data_offset, w, hh)
             }
             Format::Npz | Format::Hdf5 | Format::Parquet => {
@@ -462,5 +468,30 @@ mod tests {
         let mut c = BatchCheck::new("f", 64, 48, true, true);
         let e = c.check(bad.view()).unwrap_err().to_string();
         assert!(e.contains("event 40000: time goes backwards"), "{e}");
+    }
+
+    /// drop_outside applies to the camera formats too (their decoders would otherwise fail first).
+    #[test]
+    fn camera_formats_drop_and_count_outside_events() {
+        use crate::events::aedat4::{encode_aedat4, Aedat4Compression};
+        let mut ev = sample(10);
+        ev.x[4] = 70;
+        let files = [
+            tmp("d2.raw", &crate::events::evt2::encode_evt2(ev.view())),
+            tmp("d3.raw", &crate::events::evt3::encode_evt3(ev.view())),
+            tmp("d.aedat4", &encode_aedat4(ev.view(), Aedat4Compression::Lz4, 4)),
+        ];
+        for path in files {
+            let mut opts = ReadOptions {
+                text: TextOptions { width: 64, height: 48, ..Default::default() },
+                ..Default::default()
+            };
+            let e = EventReader::open(&path, None, &opts).unwrap().read_all().unwrap_err().to_string();
+            assert!(e.contains("(70, 4) outside"), "{path}: {e}");
+            opts.drop_outside = true;
+            let mut r = EventReader::open(&path, None, &opts).unwrap();
+            assert_eq!(r.read_all().unwrap().len(), 9, "{path}");
+            assert_eq!(r.dropped_outside(), 1);
+        }
     }
 }
