@@ -13,7 +13,7 @@ use std::io::Read;
 use rayon::prelude::*;
 
 use super::raw_header::DecodeStats;
-use super::{Decoder, Events, EventsView};
+use super::{ColumnsMut, Decoder, Events, EventsView};
 use crate::error::{Error, Result};
 
 const MAGIC: &[u8; 14] = b"#!AER-DAT4.0\r\n";
@@ -275,14 +275,8 @@ impl Aedat4Decoder {
 
     /// Copy a packet's events into the column slices, checking coordinates. The loop is branch-free
     /// (a bad coordinate only sets a flag); the offending event is looked up afterwards.
-    fn fill(
-        &self,
-        p: &Unpacked<'_>,
-        t: &mut [i64],
-        x: &mut [u16],
-        y: &mut [u16],
-        pol: &mut [i8],
-    ) -> Result<()> {
+    fn fill(&self, p: &Unpacked<'_>, out: ColumnsMut<'_>) -> Result<()> {
+        let ColumnsMut { t, x, y, p: pol } = out;
         // Coordinates are i16; seen as u16 a negative one is ≥ 2^15, so one unsigned compare suffices.
         let xlim = if self.width == 0 { 1 << 15 } else { self.width };
         let ylim = if self.height == 0 { 1 << 15 } else { self.height };
@@ -394,23 +388,24 @@ fn lz4_decompress(p: &[u8]) -> Walk<Vec<u8>> {
     Ok(out)
 }
 
-/// Decompress one zstd frame. With the content size in the frame header (DV always writes it) the
-/// frame decodes straight into an exactly sized buffer; otherwise it streams.
+/// Decompress one zstd frame. With a plausible content size in the frame header (DV always writes it)
+/// the frame decodes straight into an exactly sized buffer; otherwise it streams, so a corrupt size
+/// field cannot request a huge allocation.
 fn zstd_decompress(payload: &[u8]) -> Walk<Vec<u8>> {
     let bad = |e: &dyn std::fmt::Display| format!("bad ZSTD frame: {e}");
-    let mut frame = ruzstd::decoding::FrameDecoder::new();
-    frame.init(payload).map_err(|e| bad(&e))?;
-    let size = frame.content_size() as usize;
-    let mut v = Vec::with_capacity(size);
-    if size > 0 {
-        frame.decode_all_to_vec(payload, &mut v).map_err(|e| bad(&e))?;
-    } else {
-        ruzstd::decoding::StreamingDecoder::new(payload)
-            .map_err(|e| bad(&e))?
-            .read_to_end(&mut v)
-            .map_err(|e| bad(&e))?;
+    let plausible = (payload.len() as u64).saturating_mul(256).max(1 << 20);
+    match zstd::zstd_safe::get_frame_content_size(payload) {
+        Ok(Some(size)) if size <= plausible => {
+            zstd::bulk::decompress(payload, size as usize).map_err(|e| bad(&e))
+        }
+        _ => {
+            let mut v = Vec::new();
+            zstd::stream::read::Decoder::with_buffer(payload)
+                .and_then(|mut d| d.read_to_end(&mut v))
+                .map_err(|e| bad(&e))?;
+            Ok(v)
+        }
     }
-    Ok(v)
 }
 
 impl Decoder for Aedat4Decoder {
@@ -463,31 +458,12 @@ impl Decoder for Aedat4Decoder {
             packets.par_iter().map(|&(at, payload)| self.unpack(at, payload)).collect();
         let unpacked = unpacked.into_iter().collect::<Result<Vec<_>>>()?;
 
-        let old = out.len();
-        let total: usize = unpacked.iter().map(|p| p.count).sum();
-        out.t.resize(old + total, 0);
-        out.x.resize(old + total, 0);
-        out.y.resize(old + total, 0);
-        out.p.resize(old + total, 0);
-        let (mut t, mut x, mut y, mut p) =
-            (&mut out.t[old..], &mut out.x[old..], &mut out.y[old..], &mut out.p[old..]);
-        let mut jobs = Vec::with_capacity(unpacked.len());
-        for packet in &unpacked {
-            let n = packet.count;
-            let (t0, t1) = std::mem::take(&mut t).split_at_mut(n);
-            let (x0, x1) = std::mem::take(&mut x).split_at_mut(n);
-            let (y0, y1) = std::mem::take(&mut y).split_at_mut(n);
-            let (p0, p1) = std::mem::take(&mut p).split_at_mut(n);
-            jobs.push((packet, t0, x0, y0, p0));
-            (t, x, y, p) = (t1, x1, y1, p1);
-        }
+        let old = out.append_zeroed(unpacked.iter().map(|p| p.count).sum());
+        let parts = out.split_mut(old, unpacked.iter().map(|p| p.count));
         let filled: Vec<Result<()>> =
-            jobs.into_par_iter().map(|(pk, t, x, y, p)| self.fill(pk, t, x, y, p)).collect();
+            unpacked.par_iter().zip(parts).map(|(pk, part)| self.fill(pk, part)).collect();
         if let Some(e) = filled.into_iter().find_map(|r| r.err()) {
-            out.t.truncate(old);
-            out.x.truncate(old);
-            out.y.truncate(old);
-            out.p.truncate(old);
+            out.truncate(old);
             return Err(e);
         }
         Ok(if self.done { data.len() } else { pos })
@@ -692,15 +668,8 @@ fn compress(buf: &[u8], compression: Aedat4Compression) -> Vec<u8> {
             enc.write_all(buf).expect("writing to a Vec cannot fail");
             enc.finish().expect("writing to a Vec cannot fail")
         }
-        Aedat4Compression::Zstd => {
-            let mut z = ruzstd::encoding::compress_to_vec(buf, ruzstd::encoding::CompressionLevel::Fastest);
-            // ruzstd writes no content size; set the frame-content-size flag to 8 bytes (RFC 8878
-            // §3.1.1.1.1) and insert the size after the window descriptor.
-            assert_eq!(z[4] & 0xE3, 0, "unexpected zstd frame header");
-            z[4] |= 0xC0;
-            z.splice(6..6, (buf.len() as u64).to_le_bytes());
-            z
-        }
+        // libzstd writes the content size into the frame header, which DV requires.
+        Aedat4Compression::Zstd => zstd::bulk::compress(buf, 1).expect("compressing into a Vec cannot fail"),
     }
 }
 
@@ -991,9 +960,7 @@ mod tests {
     fn zstd_frames_carry_their_content_size() {
         let data: Vec<u8> = (0..5000u32).map(|i| (i * 7 % 251) as u8).collect();
         let z = compress(&data, Aedat4Compression::Zstd);
-        let mut frame = ruzstd::decoding::FrameDecoder::new();
-        frame.init(&z[..]).unwrap();
-        assert_eq!(frame.content_size(), 5000);
+        assert_eq!(zstd::zstd_safe::get_frame_content_size(&z).ok(), Some(Some(5000)));
         assert_eq!(zstd_decompress(&z).unwrap(), data);
     }
 }

@@ -5,8 +5,9 @@
 //! previous unwrapped base (never the raw value with the unwrapped one).
 
 use super::raw_header::{write_raw_header, DecodeStats, RawEncoding, MAX_COORD};
-use super::{Decoder, Events, EventsView};
+use super::{ColumnsMut, Decoder, Events, EventsView};
 use crate::error::{Error, Result};
+use rayon::prelude::*;
 
 const CD_OFF: u32 = 0x0;
 const CD_ON: u32 = 0x1;
@@ -17,20 +18,118 @@ const WRAP: i64 = 1 << 34;
 /// A TIME_HIGH that falls by at least `WRAP - 64 - WRAP_TOLERANCE` is a wrap (OpenEB HAL's tolerance).
 const WRAP_TOLERANCE: i64 = 10_000;
 
-/// Streaming EVT 2.0 decoder; fed the payload after the RAW header.
-#[derive(Debug, Clone)]
-pub struct Evt2Decoder {
-    path: String,
-    width: u32,
-    height: u32,
-    time_shift: bool,
+/// Words per parallel chunk: big enough to amortise a chunk's setup, small enough to balance threads.
+const CHUNK_WORDS: usize = 1 << 16;
+
+/// Decoder registers between words.
+#[derive(Debug, Clone, Copy, Default)]
+struct State {
     /// Whether a TIME_HIGH has been seen; words before it have unknown time and are skipped.
     started: bool,
     /// Unwrapped time base (TIME_HIGH << 6 plus the wraps so far), µs.
     base: i64,
     /// Subtracted from every timestamp: the first base when `time_shift`, else 0.
     shift: i64,
+}
+
+impl State {
+    /// Apply a TIME_HIGH word's 28-bit value.
+    #[inline]
+    fn time_high(&mut self, raw: u32, time_shift: bool) {
+        let mut base = (i64::from(raw) << 6) + (self.base - self.base.rem_euclid(WRAP));
+        if !self.started {
+            self.started = true;
+            self.shift = if time_shift { base } else { 0 };
+        } else if is_wrap(self.base.rem_euclid(WRAP) >> 6, i64::from(raw)) {
+            base += WRAP;
+        }
+        self.base = base;
+    }
+}
+
+/// Whether TIME_HIGH going from `previous` to `raw` (28-bit values) is a wrap of the counter. It depends
+/// on the raw values only, which is what lets a chunk be scanned without the state before it.
+#[inline]
+fn is_wrap(previous: i64, raw: i64) -> bool {
+    (previous - raw) << 6 >= WRAP - 64 - WRAP_TOLERANCE
+}
+
+/// Word counts by kind: CD events, triggers, and anything else except TIME_HIGH.
+#[derive(Debug, Clone, Copy, Default)]
+struct Counts {
+    cd: u64,
+    triggers: u64,
+    other: u64,
+}
+
+impl Counts {
+    /// Count `words` (TIME_HIGH words are passed to `on_high` and not counted).
+    fn of(words: &[u8], mut on_high: impl FnMut(u32)) -> Self {
+        let (mut highs, mut triggers, mut other) = (0u64, 0u64, 0u64);
+        for w in words.chunks_exact(4) {
+            let w = u32::from_le_bytes(w.try_into().unwrap());
+            match w >> 28 {
+                CD_OFF | CD_ON => {}
+                TIME_HIGH => {
+                    highs += 1;
+                    on_high(w & 0x0FFF_FFFF);
+                }
+                EXT_TRIGGER => triggers += 1,
+                _ => other += 1,
+            }
+        }
+        Counts { cd: (words.len() / 4) as u64 - highs - triggers - other, triggers, other }
+    }
+}
+
+/// What the first pass learns about a chunk of words without knowing the state before it.
+#[derive(Debug, Clone, Copy, Default)]
+struct ChunkScan {
+    /// Raw value of the chunk's first TIME_HIGH.
+    first_high: Option<u32>,
+    /// Raw value of the chunk's last TIME_HIGH.
+    last_high: u32,
+    /// Wraps between the chunk's own consecutive TIME_HIGHs.
+    wraps: i64,
+    /// Words before the first TIME_HIGH (all of them when there is none), and after it.
+    before: Counts,
+    after: Counts,
+}
+
+impl ChunkScan {
+    fn of(words: &[u8]) -> Self {
+        let first = words.chunks_exact(4).position(|w| w[3] >> 4 == TIME_HIGH as u8);
+        let (head, tail) = words.split_at(first.map_or(words.len(), |i| 4 * i));
+        let mut s = ChunkScan { before: Counts::of(head, |_| {}), ..Default::default() };
+        if first.is_none() {
+            return s;
+        }
+        let raw0 = u32::from_le_bytes(tail[..4].try_into().unwrap()) & 0x0FFF_FFFF;
+        let (mut last, mut wraps) = (raw0, 0);
+        s.after = Counts::of(&tail[4..], |raw| {
+            wraps += i64::from(is_wrap(i64::from(last), i64::from(raw)));
+            last = raw;
+        });
+        (s.first_high, s.last_high, s.wraps) = (Some(raw0), last, wraps);
+        s
+    }
+}
+
+/// Streaming EVT 2.0 decoder; fed the payload after the RAW header.
+///
+/// Decodes in two parallel passes over chunks of words: the first counts each chunk's events and
+/// follows its TIME_HIGHs (a wrap depends only on consecutive raw values), a sequential prefix gives
+/// every chunk its starting time base and output position, and the second writes the events straight
+/// into their final place.
+#[derive(Debug, Clone)]
+pub struct Evt2Decoder {
+    path: String,
+    width: u32,
+    height: u32,
+    time_shift: bool,
+    st: State,
     stats: DecodeStats,
+    chunk_words: usize,
 }
 
 impl Evt2Decoder {
@@ -42,10 +141,9 @@ impl Evt2Decoder {
             width,
             height,
             time_shift,
-            started: false,
-            base: 0,
-            shift: 0,
+            st: State::default(),
             stats: DecodeStats::default(),
+            chunk_words: CHUNK_WORDS,
         }
     }
 
@@ -54,57 +152,85 @@ impl Evt2Decoder {
         self.stats
     }
 
-    /// Every word except a CD event after the first TIME_HIGH (the rare path).
-    #[cold]
-    fn other_word(&mut self, w: u32) {
-        let kind = w >> 28;
-        if kind == TIME_HIGH {
-            let mut base = (i64::from(w & 0x0FFF_FFFF) << 6) + (self.base - self.base.rem_euclid(WRAP));
-            if !self.started {
-                self.started = true;
-                self.shift = if self.time_shift { base } else { 0 };
-            } else if self.base - base >= WRAP - 64 - WRAP_TOLERANCE {
-                base += WRAP;
+    /// Second pass over one chunk starting in state `st`: its CD events into `out` (sized by the first
+    /// pass). On a coordinate outside the sensor returns the word index and the coordinates.
+    fn fill(
+        &self,
+        words: &[u8],
+        mut st: State,
+        out: ColumnsMut<'_>,
+    ) -> std::result::Result<(), (usize, u32, u32)> {
+        let xlim = if self.width == 0 { MAX_COORD } else { self.width };
+        let ylim = if self.height == 0 { MAX_COORD } else { self.height };
+        let mut t0 = st.base - st.shift;
+        let mut k = 0;
+        for (i, word) in words.chunks_exact(4).enumerate() {
+            let w = u32::from_le_bytes(word.try_into().unwrap());
+            let kind = w >> 28;
+            if kind <= CD_ON && st.started {
+                let (x, y) = ((w >> 11) & 0x7FF, w & 0x7FF);
+                if x >= xlim || y >= ylim {
+                    return Err((i, x, y));
+                }
+                out.t[k] = t0 + i64::from((w >> 22) & 0x3F);
+                out.x[k] = x as u16;
+                out.y[k] = y as u16;
+                out.p[k] = kind as i8 * 2 - 1;
+                k += 1;
+            } else if kind == TIME_HIGH {
+                st.time_high(w & 0x0FFF_FFFF, self.time_shift);
+                t0 = st.base - st.shift;
             }
-            self.base = base;
-        } else if !self.started {
-            self.stats.words_before_time_high += 1;
-        } else if kind == EXT_TRIGGER {
-            self.stats.triggers += 1;
-        } else {
-            self.stats.skipped_words += 1;
         }
+        debug_assert_eq!(k, out.t.len());
+        Ok(())
     }
 }
 
 impl Decoder for Evt2Decoder {
     fn decode(&mut self, data: &[u8], offset: u64, out: &mut Events) -> Result<usize> {
         let n = data.len() / 4 * 4;
-        reserve(out, n / 4);
         if out.width == 0 && out.height == 0 {
             (out.width, out.height) = (self.width, self.height);
         }
-        let xlim = if self.width == 0 { MAX_COORD } else { self.width };
-        let ylim = if self.height == 0 { MAX_COORD } else { self.height };
-        let mut t0 = self.base - self.shift;
-        for (i, word) in data[..n].chunks_exact(4).enumerate() {
-            let w = u32::from_le_bytes(word.try_into().unwrap());
-            let kind = w >> 28;
-            if kind <= CD_ON && self.started {
-                let (x, y) = ((w >> 11) & 0x7FF, w & 0x7FF);
-                if x >= xlim || y >= ylim {
-                    return Err(Error::format(
-                        &self.path,
-                        format!("byte offset {}", offset + 4 * i as u64),
-                        format!("event ({x}, {y}) outside the {}x{} sensor", self.width, self.height),
-                    ));
-                }
-                out.push(t0 + i64::from((w >> 22) & 0x3F), x as u16, y as u16, kind as i8 * 2 - 1);
+        let chunks: Vec<&[u8]> = data[..n].chunks(4 * self.chunk_words).collect();
+        let scans: Vec<ChunkScan> = chunks.par_iter().map(|c| ChunkScan::of(c)).collect();
+        // Sequential prefix: each chunk's starting state and event count, and the skip statistics.
+        let (mut st, mut stats) = (self.st, self.stats);
+        let mut starts = Vec::with_capacity(scans.len());
+        let mut counts = Vec::with_capacity(scans.len());
+        for s in &scans {
+            starts.push(st);
+            let (b, a) = (s.before, s.after);
+            if st.started {
+                counts.push((b.cd + a.cd) as usize);
+                stats.triggers += b.triggers;
+                stats.skipped_words += b.other;
             } else {
-                self.other_word(w);
-                t0 = self.base - self.shift;
+                counts.push(a.cd as usize);
+                stats.words_before_time_high += b.cd + b.triggers + b.other;
+            }
+            stats.triggers += a.triggers;
+            stats.skipped_words += a.other;
+            if let Some(raw0) = s.first_high {
+                st.time_high(raw0, self.time_shift);
+                st.base += s.wraps * WRAP + (i64::from(s.last_high) - i64::from(raw0)) * 64;
             }
         }
+        let old = out.append_zeroed(counts.iter().sum());
+        let parts = out.split_mut(old, counts);
+        let filled: Vec<_> =
+            chunks.par_iter().zip(starts).zip(parts).map(|((c, st), part)| self.fill(c, st, part)).collect();
+        let first_error = filled.iter().enumerate().find_map(|(c, r)| r.err().map(|e| (c, e)));
+        if let Some((c, (i, x, y))) = first_error {
+            out.truncate(old);
+            return Err(Error::format(
+                &self.path,
+                format!("byte offset {}", offset + 4 * (c * self.chunk_words + i) as u64),
+                format!("event ({x}, {y}) outside the {}x{} sensor", self.width, self.height),
+            ));
+        }
+        (self.st, self.stats) = (st, stats);
         Ok(n)
     }
 
@@ -114,13 +240,6 @@ impl Decoder for Evt2Decoder {
         self.stats.dropped_partial_bytes += (tail.len() - used) as u64;
         Ok(())
     }
-}
-
-pub(crate) fn reserve(out: &mut Events, n: usize) {
-    out.t.reserve(n);
-    out.x.reserve(n);
-    out.y.reserve(n);
-    out.p.reserve(n);
 }
 
 /// Encode sorted, non-negative-time events as a complete EVT 2.0 `.raw` file (header + payload).
@@ -254,5 +373,49 @@ mod tests {
             let mut dec = Evt2Decoder::new("f.raw", 640, 480, false);
             assert_eq!(feed::pieces(&mut dec, payload, 0, piece).unwrap(), ev, "piece {piece}");
         }
+    }
+
+    /// Chunked (parallel) decoding equals one chunk (sequential) for any chunk size and thread count:
+    /// chunk borders fall before the first TIME_HIGH, between wraps, and next to triggers.
+    #[test]
+    fn chunked_parallel_decode_equals_sequential() {
+        let max_high = (1 << 28) - 1;
+        let mut words = vec![cd(true, 5, 1, 1), (EXT_TRIGGER << 28) | 1, (0xE << 28) | 7, th(max_high - 1)];
+        for (i, high) in [max_high - 1, max_high, 0, 1, 0, 2, max_high, 3].into_iter().enumerate() {
+            words.push(th(high));
+            words.extend((0..i as u32).map(|k| cd(k % 2 == 0, k, k, i as u32)));
+            words.push((EXT_TRIGGER << 28) | 5);
+            words.push((0xF << 28) | 2);
+        }
+        let mut data = bytes(&words);
+        let payload = {
+            let file = encode_evt2(feed::random_events(3000, 3, (1 << 34) - 9000, 40, 640, 480).view());
+            let h = parse_raw_header(&file, "f.raw").unwrap();
+            file[h.data_offset..].to_vec()
+        };
+        data.extend(payload);
+        for time_shift in [false, true] {
+            let decode = |chunk_words: usize| {
+                let mut dec = Evt2Decoder::new("f.raw", 640, 480, time_shift);
+                dec.chunk_words = chunk_words;
+                let ev = feed::pieces(&mut dec, &data, 0, 4000).unwrap();
+                (ev, dec.stats())
+            };
+            let (want, want_stats) = decode(usize::MAX / 4);
+            assert_eq!(want_stats.words_before_time_high, 3);
+            for chunk_words in [1, 2, 3, 7, 64] {
+                for threads in [1, 3] {
+                    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+                    let (got, stats) = pool.install(|| decode(chunk_words));
+                    assert_eq!(got, want, "chunk {chunk_words}, {threads} threads");
+                    assert_eq!(format!("{stats:?}"), format!("{want_stats:?}"));
+                }
+            }
+        }
+        let bad = bytes(&[th(0), cd(true, 0, 10, 0), th(1), cd(true, 0, 640, 0)]);
+        let mut dec = Evt2Decoder::new("f.raw", 640, 480, false);
+        dec.chunk_words = 1;
+        let e = feed::whole(&mut dec, &bad, 40).unwrap_err().to_string();
+        assert!(e.contains("byte offset 52") && e.contains("(640, 0)"), "{e}");
     }
 }

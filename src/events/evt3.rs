@@ -6,7 +6,6 @@
 //! glitches right after a TIME_HIGH re-send), so a decrease never implies an overflow; only TIME_HIGH
 //! detects the 24-bit loop.
 
-use super::evt2::reserve;
 use super::raw_header::{write_raw_header, DecodeStats, RawEncoding, MAX_COORD};
 use super::{Decoder, Events, EventsView};
 use crate::error::{Error, Result};
@@ -168,7 +167,11 @@ impl Evt3Decoder {
 impl Decoder for Evt3Decoder {
     fn decode(&mut self, data: &[u8], offset: u64, out: &mut Events) -> Result<usize> {
         let n = data.len() / 2 * 2;
-        reserve(out, n / 2);
+        // A hint, not a bound: a vector word holds up to 12 events.
+        out.t.reserve(n / 2);
+        out.x.reserve(n / 2);
+        out.y.reserve(n / 2);
+        out.p.reserve(n / 2);
         if out.width == 0 && out.height == 0 {
             (out.width, out.height) = (self.width, self.height);
         }

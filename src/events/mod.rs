@@ -13,6 +13,8 @@ pub mod text;
 pub mod undistort;
 pub mod window;
 
+use rayon::prelude::*;
+
 use crate::error::{Error, Result};
 
 /// A format decoder fed a file's payload in consecutive pieces, so any file decodes in bounded memory.
@@ -71,6 +73,66 @@ impl Events {
         self.p.push(p);
     }
 
+    /// Append `n` zeroed events for a decoder to fill by index (in parallel); returns the old length.
+    ///
+    /// An empty stream without spare capacity gets fresh zeroed allocations (calloc: the kernel's zero
+    /// pages, so no memset and the page faults land on the threads that fill the columns); otherwise
+    /// the columns grow by zeroing in parallel (a serial resize would cost as much as decoding).
+    pub fn append_zeroed(&mut self, n: usize) -> usize {
+        fn grow<T: Copy + Default + Send + Sync>(v: &mut Vec<T>, n: usize) {
+            if v.is_empty() && v.capacity() < n {
+                *v = vec![T::default(); n];
+            } else {
+                v.par_extend(rayon::iter::repeat_n(T::default(), n));
+            }
+        }
+        let old = self.len();
+        grow(&mut self.t, n);
+        grow(&mut self.x, n);
+        grow(&mut self.y, n);
+        grow(&mut self.p, n);
+        old
+    }
+
+    /// Mutable column slices of consecutive runs of `counts` events starting at index `from`, for
+    /// filling disjoint parts of the output in parallel.
+    pub fn split_mut(&mut self, from: usize, counts: impl IntoIterator<Item = usize>) -> Vec<ColumnsMut<'_>> {
+        let (mut t, mut x, mut y, mut p) =
+            (&mut self.t[from..], &mut self.x[from..], &mut self.y[from..], &mut self.p[from..]);
+        let mut parts = Vec::new();
+        for n in counts {
+            let (t0, t1) = std::mem::take(&mut t).split_at_mut(n);
+            let (x0, x1) = std::mem::take(&mut x).split_at_mut(n);
+            let (y0, y1) = std::mem::take(&mut y).split_at_mut(n);
+            let (p0, p1) = std::mem::take(&mut p).split_at_mut(n);
+            parts.push(ColumnsMut { t: t0, x: x0, y: y0, p: p0 });
+            (t, x, y, p) = (t1, x1, y1, p1);
+        }
+        parts
+    }
+
+    /// Append the events of `parts` in order, copying them in parallel (a serial gather would cost as
+    /// much as the parallel decode that produced them).
+    pub fn append_all<'a>(&mut self, parts: impl IntoIterator<Item = &'a Events>) {
+        let parts: Vec<&Events> = parts.into_iter().collect();
+        let old = self.append_zeroed(parts.iter().map(|e| e.len()).sum());
+        let dest = self.split_mut(old, parts.iter().map(|e| e.len()));
+        parts.into_par_iter().zip(dest).for_each(|(src, dst)| {
+            dst.t.copy_from_slice(&src.t);
+            dst.x.copy_from_slice(&src.x);
+            dst.y.copy_from_slice(&src.y);
+            dst.p.copy_from_slice(&src.p);
+        });
+    }
+
+    /// Drop events from index `len` on.
+    pub fn truncate(&mut self, len: usize) {
+        self.t.truncate(len);
+        self.x.truncate(len);
+        self.y.truncate(len);
+        self.p.truncate(len);
+    }
+
     /// Append all events of `other` (sensor size taken as the larger of the two).
     pub fn extend(&mut self, other: &Events) {
         self.t.extend_from_slice(&other.t);
@@ -90,6 +152,15 @@ impl Events {
     pub fn validate(&self, source: &str) -> Result<()> {
         self.view().validate(source)
     }
+}
+
+/// Mutable slices of a run of events (see [`Events::split_mut`]).
+#[derive(Debug)]
+pub struct ColumnsMut<'a> {
+    pub t: &'a mut [i64],
+    pub x: &'a mut [u16],
+    pub y: &'a mut [u16],
+    pub p: &'a mut [i8],
 }
 
 /// Borrowed event columns: an [`Events`] or four numpy arrays seen from Rust without copying.

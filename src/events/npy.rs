@@ -430,11 +430,7 @@ fn decode_rows(layout: &NpyLayout, data: &[u8], first_row: u64, path: &str, out:
     let n = data.len() / rs;
     let time = TimeConv(layout.time_unit);
     let [ft, fx, fy, fp] = layout.fields;
-    let start = out.len();
-    out.t.resize(start + n, 0);
-    out.x.resize(start + n, 0);
-    out.y.resize(start + n, 0);
-    out.p.resize(start + n, 0);
+    let start = out.append_zeroed(n);
     let first_error = out.t[start..]
         .par_chunks_mut(CH)
         .zip(out.x[start..].par_chunks_mut(CH))

@@ -7,6 +7,8 @@
 use std::fs::File;
 use std::io::Read;
 
+use rayon::prelude::*;
+
 use crate::error::{Error, Result};
 use crate::events::aedat4::{parse_aedat4_header, Aedat4Decoder};
 use crate::events::detect::{detect, read_head, Format};
@@ -17,7 +19,8 @@ use crate::events::raw_header::{parse_raw_header, DecodeStats};
 use crate::events::text::{TextDecoder, TextLayout, TextOptions};
 use crate::events::{Decoder, Events, EventsView};
 
-/// Bytes read per block.
+/// Bytes read per block. The buffer is reused, so reads land in memory that is already mapped; the
+/// output grows by parallel zeroing ([`Events::append_zeroed`]), so blocks cost no serial copies.
 const BLOCK: usize = 16 << 20;
 
 /// Reader options. `text.width/height` give the sensor size for formats that do not store one
@@ -65,7 +68,7 @@ impl BatchCheck {
     pub fn check(&mut self, v: EventsView<'_>) -> Result<Option<Vec<usize>>> {
         let (w, h) = (self.width, self.height);
         let outside = |i: usize| (w > 0 && u32::from(v.x[i]) >= w) || (h > 0 && u32::from(v.y[i]) >= h);
-        let first_out = if w > 0 || h > 0 { (0..v.len()).find(|&i| outside(i)) } else { None };
+        let first_out = if w > 0 || h > 0 { first_where(v.len(), outside) } else { None };
         let keep = match first_out {
             None => None,
             Some(i) if !self.drop_outside => {
@@ -81,18 +84,21 @@ impl BatchCheck {
             Some(_) => Some((0..v.len()).filter(|&i| !outside(i)).collect::<Vec<_>>()),
         };
         if self.require_sorted {
-            let mut prev = self.last_t;
-            let mut bad = None;
-            let mut visit = |i: usize| {
-                if bad.is_none() && prev.is_some_and(|q| v.t[i] < q) {
-                    bad = Some((i, prev.unwrap_or(0)));
+            let t = v.t;
+            let bad = match &keep {
+                Some(k) => {
+                    let mut prev = self.last_t;
+                    k.iter().find_map(|&i| {
+                        let back = prev.filter(|&q| t[i] < q).map(|q| (i, q));
+                        prev = Some(t[i]);
+                        back
+                    })
                 }
-                prev = Some(v.t[i]);
+                None => match (self.last_t, t.first()) {
+                    (Some(q), Some(&t0)) if t0 < q => Some((0, q)),
+                    _ => first_where(t.len().saturating_sub(1), |i| t[i + 1] < t[i]).map(|i| (i + 1, t[i])),
+                },
             };
-            match &keep {
-                Some(k) => k.iter().for_each(|&i| visit(i)),
-                None => (0..v.len()).for_each(visit),
-            }
             if let Some((i, q)) = bad {
                 return Err(Error::format(
                     &self.path,
@@ -110,6 +116,16 @@ impl BatchCheck {
         self.dropped += keep.as_ref().map_or(0, |k| (v.len() - k.len()) as u64);
         Ok(keep)
     }
+}
+
+/// The first `i < n` with `pred(i)`, scanning blocks in parallel with a branch-free (vectorisable)
+/// test per block and only then locating the index.
+fn first_where(n: usize, pred: impl Fn(usize) -> bool + Sync) -> Option<usize> {
+    const B: usize = 1 << 14;
+    let block = (0..n.div_ceil(B))
+        .into_par_iter()
+        .position_first(|b| (b * B..n.min(b * B + B)).fold(false, |any, i| any | pred(i)))?;
+    (block * B..n.min(block * B + B)).find(|&i| pred(i))
 }
 
 enum AnyDecoder {
@@ -174,19 +190,25 @@ impl EventReader {
                 let off = layout.data_offset;
                 (AnyDecoder::Npy(NpyDecoder::new(path, layout)), off, t.width, t.height)
             }
+            // With drop_outside the camera decoders do not bound coordinates (the reader drops and
+            // counts); otherwise they fail naming the byte offset.
             Format::Evt2 | Format::Evt3 => {
                 let h = parse_raw_header(&head, path)?;
                 let (w, hh) = if t.width > 0 { (t.width, t.height) } else { (h.width, h.height) };
+                let (dw, dh) = if opts.drop_outside { (0, 0) } else { (w, hh) };
                 let d = if format == Format::Evt2 {
-                    AnyDecoder::Evt2(Evt2Decoder::new(path, w, hh, opts.time_shift))
+                    AnyDecoder::Evt2(Evt2Decoder::new(path, dw, dh, opts.time_shift))
                 } else {
-                    AnyDecoder::Evt3(Evt3Decoder::new(path, w, hh, opts.time_shift))
+                    AnyDecoder::Evt3(Evt3Decoder::new(path, dw, dh, opts.time_shift))
                 };
                 (d, h.data_offset, w, hh)
             }
             Format::Aedat4 => {
-                let h = parse_aedat4_header(&head, path)?;
+                let mut h = parse_aedat4_header(&head, path)?;
                 let (w, hh) = if t.width > 0 { (t.width, t.height) } else { (h.width, h.height) };
+                if opts.drop_outside {
+                    (h.width, h.height) = (0, 0);
+                }
                 (AnyDecoder::Aedat4(Aedat4Decoder::new(path, &h)), h.data_offset, w, hh)
             }
             Format::Npz | Format::Hdf5 | Format::Parquet => {
@@ -268,6 +290,9 @@ impl EventReader {
     fn fill(&mut self) -> Result<()> {
         // read_to_end fills spare capacity without zeroing it first.
         let want = BLOCK.max(self.buf.len());
+        // Reserve what this read can bring in, so read_to_end does not grow the buffer by copying.
+        let left = self.file_size.saturating_sub(self.buf_offset + self.buf.len() as u64);
+        self.buf.reserve(want.min(usize::try_from(left).unwrap_or(usize::MAX)) + 1);
         let got = (&mut self.file)
             .take(want as u64)
             .read_to_end(&mut self.buf)
@@ -339,11 +364,6 @@ impl EventReader {
 
     /// Every remaining event.
     pub fn read_all(&mut self) -> Result<Events> {
-        if let (AnyDecoder::Npy(d), true) = (&self.decoder, self.pending.is_empty()) {
-            // The row count is known: one allocation instead of repeated growth.
-            let rows = usize::try_from(d.layout().rows).unwrap_or(0).min(self.file_size as usize);
-            self.pending = Events::with_capacity(rows, self.width, self.height);
-        }
         while !self.finished {
             self.fill()?;
         }
@@ -425,5 +445,53 @@ mod tests {
         opts.text.require_sorted = true;
         let e = EventReader::open(&path, None, &opts).unwrap().read_all().unwrap_err().to_string();
         assert!(e.contains("event 6: time goes backwards"), "{e}");
+    }
+
+    /// The block-parallel scans find the first bad event, also past the first block and at the
+    /// border between batches.
+    #[test]
+    fn batch_check_finds_the_first_bad_event_in_long_batches() {
+        let ev = sample(50_000);
+        let check = |ev: &Events, require_sorted| {
+            let mut c = BatchCheck::new("f", 64, 48, false, require_sorted);
+            c.check(ev.view()).map(|_| ()).unwrap_err().to_string()
+        };
+        let mut bad = ev.clone();
+        bad.t[40_000] = 0;
+        bad.t[45_000] = 0;
+        assert!(check(&bad, true).contains("event 40000: time goes backwards"));
+        bad.x[30_001] = 64;
+        assert!(check(&bad, false).contains("event 30001: (64, 1) outside"));
+        let mut c = BatchCheck::new("f", 64, 48, false, true);
+        c.check(ev.view()).unwrap();
+        assert!(c.check(ev.view()).unwrap_err().to_string().contains("event 50000: time goes backwards"));
+        let mut c = BatchCheck::new("f", 64, 48, true, true);
+        let e = c.check(bad.view()).unwrap_err().to_string();
+        assert!(e.contains("event 40000: time goes backwards"), "{e}");
+    }
+
+    /// drop_outside applies to the camera formats too (their decoders would otherwise fail first).
+    #[test]
+    fn camera_formats_drop_and_count_outside_events() {
+        use crate::events::aedat4::{encode_aedat4, Aedat4Compression};
+        let mut ev = sample(10);
+        ev.x[4] = 70;
+        let files = [
+            tmp("d2.raw", &crate::events::evt2::encode_evt2(ev.view())),
+            tmp("d3.raw", &crate::events::evt3::encode_evt3(ev.view())),
+            tmp("d.aedat4", &encode_aedat4(ev.view(), Aedat4Compression::Lz4, 4)),
+        ];
+        for path in files {
+            let mut opts = ReadOptions {
+                text: TextOptions { width: 64, height: 48, ..Default::default() },
+                ..Default::default()
+            };
+            let e = EventReader::open(&path, None, &opts).unwrap().read_all().unwrap_err().to_string();
+            assert!(e.contains("(70, 4) outside"), "{path}: {e}");
+            opts.drop_outside = true;
+            let mut r = EventReader::open(&path, None, &opts).unwrap();
+            assert_eq!(r.read_all().unwrap().len(), 9, "{path}");
+            assert_eq!(r.dropped_outside(), 1);
+        }
     }
 }

@@ -647,8 +647,8 @@ impl TextDecoder {
         };
         let pieces = split_at_lines(data, 4 * rayon::current_num_threads());
         let chunks: Vec<Chunk> = pieces.par_iter().map(|p| parser.parse_chunk(p)).collect();
-        for c in chunks {
-            if let Some((line, msg)) = c.error {
+        for c in &chunks {
+            if let Some((line, msg)) = &c.error {
                 return Err(Error::format(&self.path, format!("line {}", self.lines + line), msg));
             }
             if let (true, Some(last), Some(&t0)) = (self.require_sorted, self.last, c.events.t.first()) {
@@ -664,8 +664,8 @@ impl TextDecoder {
                 self.last = Some(t);
             }
             self.lines += c.lines;
-            out.extend(&c.events);
         }
+        out.append_all(chunks.iter().map(|c| &c.events));
         Ok(())
     }
 }
