@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -132,3 +134,17 @@ def test_mapping_keeps_parameters_aligned_through_densification(synth):
     knots = state.traj.knots()
     assert torch.equal(knots[0], torch.as_tensor(scene.poses[0]))
     assert not torch.equal(knots[k + 1], torch.as_tensor(scene.poses[k + 1]))
+
+
+def test_start_frame_counts_in_the_data_sets_numbering(synth):
+    """``evgs import --frames A:B`` renumbers frames from 0 and records A as ``frame_offset``; the configs'
+    ``start_frame`` (the paper's numbering) must still select the same frames."""
+    seq, _ = synth
+    data_cfg = config().data
+    whole = EventData.from_sequence(seq, dataclasses.replace(data_cfg, start_frame=3, num_frames=2))
+    # Pretend this folder's frame 0 is the data set's frame 2: data-set frame 5 is folder frame 3.
+    imported = dataclasses.replace(seq, meta={**seq.meta, "frame_offset": 2})
+    sub = EventData.from_sequence(imported, dataclasses.replace(data_cfg, start_frame=5, num_frames=2))
+    np.testing.assert_array_equal(sub.frames_us, whole.frames_us)
+    with pytest.raises(ValueError, match="before the imported range"):
+        EventData.from_sequence(imported, dataclasses.replace(data_cfg, start_frame=1, num_frames=2))

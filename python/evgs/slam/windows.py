@@ -68,7 +68,15 @@ class EventData:
     @classmethod
     def from_sequence(cls, seq: Sequence, cfg: DataConfig) -> EventData:
         frames = seq.frames_us()
-        first = cfg.start_frame
+        # data.start_frame counts in the data set's own numbering (the paper's frame ranges); an import
+        # with --frames A:B renumbers from 0 and records A as frame_offset.
+        offset = int(seq.meta.get("frame_offset", 0))
+        first = cfg.start_frame - offset
+        if first < 0:
+            raise ValueError(
+                f"{seq.root / 'sequence.toml'}: data.start_frame = {cfg.start_frame} lies before the "
+                f"imported range, which starts at frame {offset} (frame_offset)"
+            )
         last = len(frames) if cfg.num_frames == 0 else min(len(frames), first + cfg.num_frames + 1)
         frames = frames[first:last]
         if len(frames) < 2:
