@@ -37,6 +37,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "estimate, so ground truth is needed, as in the paper)",
     )
     p.add_argument("--no-images", action="store_true", help="skip rendering and image metrics")
+    p.add_argument(
+        "--image-poses",
+        choices=["estimate", "gt"],
+        default="estimate",
+        help="render the map for the image metrics from the estimated poses (default: the run's own view, "
+        "pose errors count) or from the ground-truth viewpoints mapped through the Sim(3) (the map alone)",
+    )
     p.add_argument("--no-report", action="store_true", help="metrics only: no figures or reports")
     p.add_argument("--se3", action="store_true", help="align with SE(3) instead of Sim(3) (scale fixed to 1)")
     p.add_argument("--rpe-delta-m", type=float, default=1.0, help="path length per RPE pair (GT units)")
@@ -68,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     for run_dir in args.runs:
         ev = evaluate_run(
             run_dir, images=not args.no_images, elope=args.elope, with_scale=not args.se3,
-            rpe_delta_m=args.rpe_delta_m,
+            rpe_delta_m=args.rpe_delta_m, image_poses=args.image_poses,
         )  # fmt: skip
         save_metrics(ev, run_dir / "eval" / "metrics.json")
         if not args.no_report:

@@ -1,8 +1,12 @@
-"""Render a run's final scene (``gaussians.ply``) at the ground-truth frame poses for the image metrics.
+"""Render a run's final scene (``gaussians.ply``) at the ground-truth frame times for the image metrics.
 
-The map lives in the estimate's frame, so each ground-truth camera pose is brought into it with the
-inverse of the evaluation Sim(3) (estimate → ground truth); the images therefore show the scene from the
-true viewpoints, independent of the estimated poses at those frames.
+Two viewpoints (``evgs.eval.run.ImagePoses``):
+- ``"estimate"`` (default): the estimated poses at those frames. The map lives in the estimate's frame,
+  so this equals rendering the Sim(3)-aligned map at the aligned estimate — what the run itself would
+  show at those times; pose errors lower the scores.
+- ``"gt"``: each ground-truth pose brought into the map with the inverse of the evaluation Sim(3)
+  (estimate → ground truth), so the images show the scene from the true viewpoints and measure the map
+  alone.
 """
 
 from __future__ import annotations
@@ -33,10 +37,15 @@ def gt_poses_in_map(seq: Sequence, sim3: Sim3, frames: np.ndarray) -> np.ndarray
 def render_at_gt_frames(
     ply: str | Path, seq: Sequence, sim3: Sim3, frames: np.ndarray, *, batch: int = 4
 ) -> np.ndarray:
-    """(F, H, W) grey renders in [0, 1]; colour renders are averaged over channels to match the grey
-    ground-truth images."""
+    """Renders from the ground-truth viewpoints (``"gt"``) at the given sequence frames."""
+    return render_map(ply, seq, gt_poses_in_map(seq, sim3, frames), batch=batch)
+
+
+def render_map(ply: str | Path, seq: Sequence, T_map_c: np.ndarray, *, batch: int = 4) -> np.ndarray:
+    """(F, H, W) grey renders in [0, 1] from camera-to-map poses; colour renders are averaged over
+    channels to match the grey ground-truth images."""
     g = load_ply(ply)
-    viewmats = torch.from_numpy(invert_pose(gt_poses_in_map(seq, sim3, frames)).astype(np.float32))
+    viewmats = torch.from_numpy(invert_pose(T_map_c).astype(np.float32))
     out = []
     with torch.inference_mode():
         for s in range(0, len(viewmats), batch):

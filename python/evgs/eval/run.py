@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import tomllib
@@ -17,6 +18,9 @@ from evgs.eval.elope import elope_score, velocities
 from evgs.eval.images import ImageMetrics, evaluate_images
 from evgs.eval.trajectory import TrajectoryMetrics, evaluate_trajectory
 from evgs.io_util import atomic_path
+
+# Where the map is rendered from for the image metrics (see evgs.eval.render_gt).
+ImagePoses = Literal["estimate", "gt"]
 
 
 @dataclass
@@ -112,9 +116,13 @@ def evaluate_run(
     elope: bool | None = None,
     with_scale: bool = True,
     rpe_delta_m: float = 1.0,
+    image_poses: ImagePoses = "estimate",
 ) -> RunEvaluation:
     """Evaluate a run. ``elope=None`` computes the ELOPE score only for ELOPE sequences (their ``z`` is
-    the altitude); ``images`` renders ``gaussians.ply`` at the ground-truth frames when possible."""
+    the altitude); ``images`` renders ``gaussians.ply`` at the ground-truth frames when possible, from
+    the estimated poses or the ground-truth viewpoints (``image_poses``, see ``evgs.eval.render_gt``)."""
+    if image_poses not in ("estimate", "gt"):
+        raise ValueError(f"image_poses must be 'estimate' or 'gt', got {image_poses!r}")
     run_dir = Path(run_dir)
     config = read_run_config(run_dir)
     seq = resolve_sequence(run_dir, config)
@@ -141,15 +149,15 @@ def evaluate_run(
     if is_elope(seq) if elope is None else elope:
         ev.elope_score = elope_score(assoc.t, ev.traj.p_est, ev.traj.p_gt)
     if images:
-        _evaluate_images(ev)
+        _evaluate_images(ev, image_poses)
     return ev
 
 
-def _evaluate_images(ev: RunEvaluation) -> None:
+def _evaluate_images(ev: RunEvaluation, image_poses: ImagePoses) -> None:
     """Fill ``ev.images`` or explain in ``ev.notes`` why image metrics were not computed."""
-    frames = ev.frames[ev.frames >= 0]
-    gts = [(f, ev.sequence.image(int(f))) for f in frames]
-    gts = [(f, img) for f, img in gts if img is not None]
+    rows = np.flatnonzero(ev.frames >= 0)
+    gts = [(r, ev.sequence.image(int(ev.frames[r]))) for r in rows]
+    gts = [(r, img) for r, img in gts if img is not None]
     ply = ev.run_dir / "gaussians.ply"
     if not gts:
         ev.notes.append("image metrics skipped: the sequence has no ground-truth images at the run's frames")
@@ -158,15 +166,21 @@ def _evaluate_images(ev: RunEvaluation) -> None:
         ev.notes.append("image metrics skipped: the run has no gaussians.ply")
         return
     try:
-        from evgs.eval.render_gt import render_at_gt_frames
+        from evgs.eval.render_gt import render_at_gt_frames, render_map
     except ImportError as e:
         ev.notes.append(f"image metrics skipped: renderer unavailable ({e})")
         return
-    f_idx = np.array([f for f, _ in gts])
+    r_idx = np.array([r for r, _ in gts])
+    f_idx = ev.frames[r_idx]
     gt_imgs = np.stack([img for _, img in gts])
-    renders = render_at_gt_frames(ply, ev.sequence, ev.traj.sim3, f_idx)
+    if image_poses == "estimate":
+        renders = render_map(ply, ev.sequence, ev.assoc.T_est[r_idx])
+    else:
+        renders = render_at_gt_frames(ply, ev.sequence, ev.traj.sim3, f_idx)
     ev.images = evaluate_images(renders, gt_imgs)
     ev.image_frames = f_idx
+    view = "estimated poses" if image_poses == "estimate" else "ground-truth viewpoints"
+    ev.notes.append(f"image metrics rendered from the {view}")
 
 
 def save_metrics(ev: RunEvaluation, path: Path) -> None:
