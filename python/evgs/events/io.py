@@ -32,6 +32,8 @@ from evgs.io_util import atomic_path
 
 RUST_FORMATS = ("text", "npy", "evt2", "evt3", "aedat4")
 READ_FORMATS = (*RUST_FORMATS, "npz", "hdf5", "parquet")
+# Time bits of the EVT counters (see EventWriter._check_time_range).
+EVT_TIME_BITS = {"evt2": 34, "evt3": 24}
 WRITE_FORMATS = ("parquet", "csv", "txt", "npy", "hdf5", "evt2", "evt3", "aedat4")
 DEFAULT_BATCH = 1 << 20
 SCHEMA_NP = (np.int64, np.uint16, np.uint16, np.int8)
@@ -440,8 +442,23 @@ class EventWriter:
                 write_parquet(self._tmp, _concat([], self.width, self.height))
         else:
             ev = _concat(self._parts, self.width, self.height)
+            self._check_time_range(ev)
             fmt = {"aedat4": "aedat4-lz4"}.get(self.format, self.format)
             _core.encode_camera(fmt, ev.t, ev.x, ev.y, ev.p, self.width, self.height).tofile(self._tmp)
+
+    def _check_time_range(self, ev: EventArray) -> None:
+        """EVT counters carry 34 (2.0) or 24 (3.0) bits of µs and a decoder rebuilds absolute time from
+        the first period on, so a stream starting later would come back wrapped: refuse, don't corrupt."""
+        bits = EVT_TIME_BITS.get(self.format)
+        if bits is None or len(ev) == 0:
+            return
+        t0 = int(ev.t[0])
+        if not 0 <= t0 < 1 << bits:
+            raise ValueError(
+                f"{self.path}: {self.format} stores {bits} bits of µs time, so the first event at {t0} µs "
+                f"cannot be written (it would read back as {t0 % (1 << bits)} µs); subtract a time offset "
+                "first, or write parquet/npy/hdf5/aedat4, which keep 64-bit times"
+            )
 
     def _cleanup(self) -> None:
         if self._file is not None and not self._file.closed:
