@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 from evgs.config import load_config
+from evgs.data.sequence import Camera
 from evgs.slam.gaussians import (
     PARAM_NAMES,
     SH_C0,
@@ -48,10 +49,32 @@ def test_knn_scale_on_a_grid():
     assert np.allclose(s[centre], 0.5)
 
 
-def test_from_config_uses_the_configured_values():
-    cfg = load_config(overrides=["gaussians.num_init=64"]).gaussians
-    g = Gaussians.from_config(cfg, torch.Generator().manual_seed(0))
-    assert len(g) == 64 and g["colors"][0, 0] == cfg.init_color
+def test_on_rays_seeds_only_weighted_pixels_at_depths_in_range():
+    camera = Camera(width=40, height=30, fx=50.0, fy=45.0, cx=19.5, cy=14.5)
+    weights = torch.zeros(30, 40)
+    weights[10:14, 5:9] = 1.0  # a 4×4 patch and one heavy pixel
+    weights[25, 33] = 20.0
+    g = Gaussians.on_rays(2000, weights, camera, (2.0, 5.0), 0.2, 0.3, torch.Generator().manual_seed(1))
+    p = g["means"].detach().double()
+    z = p[:, 2]
+    assert bool(((z >= 2.0) & (z <= 5.0)).all())
+    u = (p[:, 0] / z * camera.fx + camera.cx).floor().long()
+    v = (p[:, 1] / z * camera.fy + camera.cy).floor().long()
+    assert bool((weights[v, u] > 0).all())  # every Gaussian lies on a ray of a pixel with events
+    heavy = float(((u == 33) & (v == 25)).double().mean())
+    assert heavy == pytest.approx(20 / 36, abs=0.05)  # drawn in proportion to the weights
+    assert torch.allclose(g.opacities(), torch.tensor(0.2)) and bool((g["colors"] == 0.3).all())
+    again = Gaussians.on_rays(2000, weights, camera, (2.0, 5.0), 0.2, 0.3, torch.Generator().manual_seed(1))
+    assert torch.equal(again["means"], g["means"])
+
+
+def test_on_rays_rejects_an_empty_activity_map_and_bad_depths():
+    camera = Camera(width=4, height=3, fx=5.0, fy=5.0, cx=1.5, cy=1.0)
+    gen = torch.Generator().manual_seed(0)
+    with pytest.raises(ValueError, match="no pixel with events"):
+        Gaussians.on_rays(10, torch.zeros(3, 4), camera, (1.0, 2.0), 0.1, 0.1, gen)
+    with pytest.raises(ValueError, match="must be positive"):
+        Gaussians.on_rays(10, torch.ones(3, 4), camera, (-1.0, 2.0), 0.1, 0.1, gen)
 
 
 def test_optimizer_groups_are_named_with_scaled_means_lr():

@@ -14,7 +14,8 @@ from evgs.config import load_config  # noqa: E402
 from evgs.slam.gaussians import PARAM_NAMES, Gaussians  # noqa: E402
 from evgs.slam.guards import BrightnessAnchor  # noqa: E402
 from evgs.slam.lie import se3_exp, se3_inverse, se3_log  # noqa: E402
-from evgs.slam.optimize import Convergence  # noqa: E402
+from evgs.slam.optimize import Convergence, StageSpec, lr_boost, set_lr_boost  # noqa: E402
+from evgs.slam.pipeline import initial_gaussians  # noqa: E402
 from evgs.slam.stages import map_window, track  # noqa: E402
 from evgs.slam.state import SlamState  # noqa: E402
 from evgs.slam.trajectory import Trajectory  # noqa: E402
@@ -82,6 +83,35 @@ def test_convergence_stops_on_plateau_only():
     assert not any(off.update(1.0) for _ in range(10))
 
 
+def test_lr_boost_decays_exponentially_from_the_boost_to_the_configured_rates():
+    spec = StageSpec("init", 5, 11, (0, 10), 1, 0, [1], [0, 1], True, lr_boost=100.0)
+    assert [lr_boost(spec, it) for it in (0, 5, 10)] == pytest.approx([100.0, 10.0, 1.0])
+    assert lr_boost(dataclasses.replace(spec, lr_boost=1.0), 0) == 1.0
+    p = torch.nn.Parameter(torch.zeros(2))
+    opt = torch.optim.Adam([p], lr=1e-3)
+    set_lr_boost([opt, None], 10.0)
+    set_lr_boost([opt], 2.0)  # relative to the rate at creation, not compounding
+    assert opt.param_groups[0]["lr"] == pytest.approx(2e-3)
+
+
+def test_event_seeding_needs_the_depth_range_ahead_of_the_camera(synth):
+    seq, _ = synth
+    cfg = config("gaussians.init_seeding=events", "gaussians.init_depth=0.5", "gaussians.bounding_size=1.0")
+    with pytest.raises(ValueError, match="init_depth"):
+        initial_gaussians(cfg.gaussians, EventData.from_sequence(seq, cfg.data), 3, torch.Generator())
+    cfg = config("gaussians.init_seeding=events", "gaussians.init_depth=2.5", "gaussians.num_init=300")
+    data = EventData.from_sequence(seq, cfg.data)
+    g = initial_gaussians(cfg.gaussians, data, 3, torch.Generator().manual_seed(0))
+    means = g["means"].detach()
+    z = means[:, 2]
+    assert len(g) == 300 and float(z.min()) >= 1.5 and float(z.max()) <= 3.5
+    active = data.activity(data.span(0, 3)) >= cfg.gaussians.init_min_events
+    cam = data.camera
+    u = (means[:, 0] / z * cam.fx + cam.cx).floor().long()
+    v = (means[:, 1] / z * cam.fy + cam.cy).floor().long()
+    assert bool(active[v, u].all())
+
+
 def reprojection_px(T: torch.Tensor, T_gt: torch.Tensor, points: torch.Tensor, fx: float) -> float:
     """Mean image displacement (px) of ``points`` seen from ``T`` instead of ``T_gt``: the error the
     event loss observes (lateral translation and rotation trade off in a narrow view)."""
@@ -93,9 +123,17 @@ def reprojection_px(T: torch.Tensor, T_gt: torch.Tensor, points: torch.Tensor, f
     return float((uv[0] - uv[1]).norm(dim=1).mean())
 
 
-def test_tracking_recovers_a_perturbed_pose(synth):
+@pytest.mark.parametrize(
+    "solver_sets",
+    [
+        ("tracking.solver=adam", "tracking.num_opti_steps=60", "trajectory.pose_lr=3e-3"),
+        ("tracking.solver=lm", "tracking.num_opti_steps=8"),  # curvature: a few steps suffice
+    ],
+    ids=["adam", "lm"],
+)
+def test_tracking_recovers_a_perturbed_pose(synth, solver_sets):
     _, scene = synth
-    cfg = config("tracking.num_opti_steps=60", "economy.coarse_factor=1", "trajectory.pose_lr=3e-3")
+    cfg = config(*solver_sets, "economy.coarse_factor=1")
     k = 4
     state = gt_state(synth, cfg, k + 1)
     T_gt = torch.as_tensor(scene.poses[k + 1])

@@ -52,13 +52,18 @@ class TrajectoryConfig:
 class InitConfig:
     num_frames: int
     num_opti_steps_for_init: int
+    lr_boost: float
 
 
 @dataclass(frozen=True)
 class TrackingConfig:
+    solver: Literal["adam", "lm"]
     num_opti_steps: int
     mask_border: int
     mask_alpha: float
+    lm_step: float
+    lm_damping: float
+    lm_tolerance: float
 
 
 @dataclass(frozen=True)
@@ -76,6 +81,7 @@ class GlobalBAConfig:
     every: int
     num_opti_steps: int
     num_opti_steps_final: int
+    lr_boost: float
 
 
 @dataclass(frozen=True)
@@ -83,6 +89,9 @@ class GaussiansConfig:
     num_init: int
     bounding_size: float
     init_depth: float
+    init_seeding: Literal["box", "events"]
+    init_depth_spread: float
+    init_min_events: int
     init_opacity: float
     init_color: float
     background: float

@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from evgs.config import GaussiansConfig
+from evgs.data.sequence import Camera
 from evgs.io_util import atomic_path
 
 SH_C0 = 0.28209479177387814  # degree-0 spherical harmonic: colour = 0.5 + SH_C0 · f_dc
@@ -86,7 +87,54 @@ class Gaussians:
         if num < 4:
             raise ValueError(f"gaussians: need at least 4 for the 3-nearest-neighbour scale, got {num}")
         means = (torch.rand(num, 3, generator=generator, dtype=torch.float64) * 2 - 1) * bounding_size
-        log_scale = torch.from_numpy(knn_log_scale(means.numpy()))
+        return cls.at(means, opacity, color)
+
+    @classmethod
+    def on_rays(
+        cls,
+        num: int,
+        weights: Tensor,
+        camera: Camera,
+        depth_range: tuple[float, float],
+        opacity: float,
+        color: float,
+        generator: torch.Generator,
+    ) -> Gaussians:
+        """``num`` Gaussians on the rays of the first camera (at the identity) through pixels drawn with
+        probability ∝ ``weights`` (H, W), at a uniform point in the pixel and a depth uniform in
+        ``depth_range``; scaled and oriented as :meth:`random`.
+
+        Against a black background every event comes from the target, so its pixels say where in the
+        image the target is; only depth is unknown. Seeding there puts the whole budget on the target
+        instead of the ~1–5 % of a box around the camera that it fills.
+        """
+        if num < 4:
+            raise ValueError(f"gaussians: need at least 4 for the 3-nearest-neighbour scale, got {num}")
+        lo, hi = depth_range
+        if not 0 < lo < hi:
+            raise ValueError(f"gaussians: the seeding depth range ({lo:g}, {hi:g}) must be positive")
+        flat = weights.reshape(-1).double()
+        if not bool((flat > 0).any()):
+            raise ValueError("gaussians: no pixel with events to seed the initial Gaussians from")
+        pix = torch.multinomial(flat, num, replacement=True, generator=generator)
+        jitter = torch.rand(num, 2, generator=generator, dtype=torch.float64)
+        u = (pix % camera.width).double() + jitter[:, 0]
+        v = (pix // camera.width).double() + jitter[:, 1]
+        depth = lo + (hi - lo) * torch.rand(num, generator=generator, dtype=torch.float64)
+        means = torch.stack(
+            [(u - camera.cx) / camera.fx * depth, (v - camera.cy) / camera.fy * depth, depth], -1
+        )
+        g = cls.at(means, opacity, color)
+        with torch.no_grad():  # isolated seeds (noise events) would get huge, slow, view-filling scales
+            cap = torch.quantile(g["log_scales"][:, 0], 0.9)
+            g["log_scales"].clamp_(max=float(cap))
+        return g
+
+    @classmethod
+    def at(cls, means: Tensor, opacity: float, color: float) -> Gaussians:
+        """Isotropic Gaussians at ``means`` (N, 3) with the 3-nearest-neighbour RMS distance as scale."""
+        num = len(means)
+        log_scale = torch.from_numpy(knn_log_scale(means.double().numpy()))
         quats = torch.zeros(num, 4)
         quats[:, 0] = 1
         return cls(
@@ -96,10 +144,6 @@ class Gaussians:
             torch.full((num,), opacity_logit(opacity)),
             torch.full((num, 1), float(color)),
         )
-
-    @classmethod
-    def from_config(cls, cfg: GaussiansConfig, generator: torch.Generator) -> Gaussians:
-        return cls.random(cfg.num_init, cfg.bounding_size, cfg.init_opacity, cfg.init_color, generator)
 
     def state(self) -> dict[str, Tensor]:
         return {k: v.detach().clone() for k, v in self.params.items()}

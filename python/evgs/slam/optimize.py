@@ -44,6 +44,7 @@ class StageSpec:
     train_gaussians: bool
     masked: bool = False  # tracking's border / low-alpha mask
     anchored: bool = False  # brightness anchor term
+    lr_boost: float = 1.0  # every Adam rate starts this many times higher, decaying to 1× at the end
 
 
 @dataclass
@@ -95,6 +96,22 @@ def loss_step(state: SlamState, spec: StageSpec, win: Windows, factor: int) -> S
     if spec.anchored:
         total = total + state.anchor.penalty(out.color, out.alpha)
     return StepResult(out, terms, total, camera)
+
+
+def lr_boost(spec: StageSpec, it: int) -> float:
+    """``spec.lr_boost`` at the first iteration, decaying exponentially to 1 at the last."""
+    if spec.lr_boost == 1.0 or spec.iterations <= 1:
+        return 1.0
+    return spec.lr_boost ** (1.0 - it / (spec.iterations - 1))
+
+
+def set_lr_boost(optimizers: list[torch.optim.Optimizer | None], boost: float) -> None:
+    """Every group's rate = its rate at creation (remembered as ``base_lr``) × ``boost``."""
+    for opt in optimizers:
+        if opt is None:
+            continue
+        for group in opt.param_groups:
+            group["lr"] = group.setdefault("base_lr", group["lr"]) * boost
 
 
 def set_gaussians_trainable(state: SlamState, on: bool) -> None:
@@ -151,6 +168,7 @@ def run_stage(state: SlamState, spec: StageSpec, reporter: StageReporter | None 
             pose_opt.zero_grad(set_to_none=True)
         if g_opt is not None:
             g_opt.zero_grad(set_to_none=True)
+        set_lr_boost([pose_opt, g_opt], lr_boost(spec, it))
         step = loss_step(state, spec, win, factor)
         step.total.backward()
         if pose_opt is not None:
@@ -171,8 +189,8 @@ def run_stage(state: SlamState, spec: StageSpec, reporter: StageReporter | None 
         if stopper.update(loss):
             if factor > 1:  # the coarse level has converged: go on at full resolution
                 coarse_end, stopper = it + 1, Convergence(econ.patience, econ.min_rel_change)
-            elif it + 1 >= econ.min_fraction * spec.iterations:
-                stopped = True
+            elif it + 1 >= econ.min_fraction * spec.iterations and spec.lr_boost == 1.0:
+                stopped = True  # (a decaying schedule runs to its end: it plans on the small final rates)
                 break
     if spec.train_gaussians and step is not None:
         blockers += prune_blockers(state, spec, strategy, g_opt, step)

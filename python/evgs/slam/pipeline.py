@@ -13,7 +13,7 @@ from collections.abc import Callable
 
 import torch
 
-from evgs.config import Config
+from evgs.config import Config, GaussiansConfig
 from evgs.slam import checkpoint
 from evgs.slam.gaussians import Gaussians
 from evgs.slam.guards import BrightnessAnchor
@@ -28,13 +28,33 @@ from evgs.slam.windows import EventData
 def new_state(cfg: Config, data: EventData) -> SlamState:
     """Random Gaussians in the bounding box and near-identity knots at the initialization frames."""
     generator = torch.Generator().manual_seed(cfg.seed)
-    gaussians = Gaussians.from_config(cfg.gaussians, generator)
-    with torch.no_grad():  # the first camera is near the identity: its optical axis is +z
-        gaussians["means"][:, 2] += cfg.gaussians.init_depth
     m = min(cfg.init.num_frames, data.n_chunks)
+    gaussians = initial_gaussians(cfg.gaussians, data, m, generator)
     knots = random_knots(m + 1, cfg.trajectory.init_pose_noise, generator)
     traj = Trajectory(data.frames_us[: m + 1], knots, cfg.trajectory.interpolation)
     return SlamState(cfg, data, traj, gaussians, generator, BrightnessAnchor(cfg.guards.brightness_weight))
+
+
+def initial_gaussians(g: GaussiansConfig, data: EventData, m: int, generator: torch.Generator) -> Gaussians:
+    """The map before initialization, seeded as ``gaussians.init_seeding`` says; the first camera is near
+    the identity, so its optical axis is +z."""
+    if g.init_seeding == "events":
+        counts = data.activity(data.span(0, m))
+        weights = torch.where(counts >= g.init_min_events, counts, 0.0)
+        spread = g.init_depth_spread or g.bounding_size
+        depths = (g.init_depth - spread, g.init_depth + spread)
+        if depths[0] <= 0:
+            raise ValueError(
+                f"gaussians.init_seeding = 'events' needs init_depth ({g.init_depth:g}) > the depth spread "
+                f"({spread:g}; init_depth_spread, else bounding_size): the seeded depths must lie ahead"
+            )
+        return Gaussians.on_rays(
+            g.num_init, weights, data.camera, depths, g.init_opacity, g.init_color, generator
+        )
+    gaussians = Gaussians.random(g.num_init, g.bounding_size, g.init_opacity, g.init_color, generator)
+    with torch.no_grad():
+        gaussians["means"][:, 2] += g.init_depth
+    return gaussians
 
 
 def describe(record: StageRecord) -> str:

@@ -17,6 +17,7 @@ import torch
 
 from evgs.render import render
 from evgs.slam.optimize import StageReporter, StageSpec, run_stage
+from evgs.slam.pose_solver import lm_track
 from evgs.slam.state import SlamState, StageRecord, stage_seed
 from evgs.slam.strategy import DefaultStrategy, gaussians_from_view, median_depth
 
@@ -31,7 +32,7 @@ def initialize(state: SlamState, reporter: StageReporter | None = None) -> Stage
     spec = StageSpec(
         "init", _seq_frame(state, m), cfg.init.num_opti_steps_for_init, state.data.span(0, m),
         cfg.data.training_batch_size, stage_seed(cfg.seed, "init", m), range(1, m + 1), range(m + 1),
-        train_gaussians=True,
+        train_gaussians=True, lr_boost=cfg.init.lr_boost,
     )  # fmt: skip
     record = run_stage(state, spec, reporter)
     set_brightness_reference(state)
@@ -65,6 +66,8 @@ def track(
         cfg.data.training_batch_size, stage_seed(cfg.seed, "track", k), [k + 1], [k, k + 1],
         train_gaussians=False, masked=True,
     )  # fmt: skip
+    if cfg.tracking.solver == "lm":
+        return lm_track(state, spec, reporter)
     return run_stage(state, spec, reporter)
 
 
@@ -117,5 +120,6 @@ def global_ba(state: SlamState, final: bool, reporter: StageReporter | None = No
     spec = StageSpec(
         stage, _seq_frame(state, n), iters, state.data.span(0, n), cfg.data.training_batch_size,
         stage_seed(cfg.seed, stage, n), range(1, n + 1), range(n + 1), train_gaussians=True, anchored=True,
+        lr_boost=cfg.global_ba.lr_boost,
     )  # fmt: skip
     return run_stage(state, spec, reporter)

@@ -100,15 +100,16 @@ class Trajectory(torch.nn.Module):
     def forward(self, t_us: Tensor | np.ndarray) -> Tensor:
         return self.pose_at(t_us)
 
-    def pose_at(self, t_us: Tensor | np.ndarray) -> Tensor:
-        """(M, 4, 4) float64 camera-to-world poses at integer-µs times inside the knot range."""
+    def pose_at(self, t_us: Tensor | np.ndarray, knots: Tensor | None = None) -> Tensor:
+        """(M, 4, 4) float64 camera-to-world poses at integer-µs times inside the knot range; ``knots``
+        (K, 4, 4) replaces the current knots (a pose solver's trial values)."""
         t = torch.as_tensor(np.asarray(t_us), dtype=torch.int64).reshape(-1)
         lo, hi = int(self.t_us[0]), int(self.t_us[-1])
         outside = (t < lo) | (t > hi)
         if torch.any(outside):
             bad = int(t[outside][0])
             raise ValueError(f"trajectory: time {bad} µs is outside the knot range [{lo}, {hi}] µs")
-        knots = self.knots()
+        knots = self.knots() if knots is None else knots
         if len(self) == 1:
             return knots.expand(len(t), 4, 4)
         seg = (torch.searchsorted(self.t_us, t, right=True) - 1).clamp(0, len(self) - 2)

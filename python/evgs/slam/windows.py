@@ -123,6 +123,14 @@ class EventData:
         self.dropped += int(dropped.sum())
         return torch.from_numpy(frames) / float(factor * factor)
 
+    def activity(self, span: tuple[int, int]) -> Tensor:
+        """(H, W) number of events per pixel over an index range (both polarities counted)."""
+        counts = accumulate(
+            self.events, np.array([span[0]]), np.array([span[1]]), c_on=1.0, c_off=-1.0,
+            undistort=self.undistort,
+        )  # fmt: skip
+        return torch.from_numpy(counts[0])
+
     def windows(self, sampler: WindowSampler, batch: int, factor: int = 1) -> Windows:
         starts, ends = sampler.sample(batch)
         t = self.events.t

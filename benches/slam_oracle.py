@@ -1,0 +1,132 @@
+"""Map quality measured apart from pose estimation (a diagnostic benchmark, not a test).
+
+    PYTHONPATH=python python benches/slam_oracle.py [--seq synthetic/orbit_ambient] [--track 6] [--set k=v ...]
+
+1. Initialization with the ground-truth knots, frozen (translations scaled by ``init_depth`` / the
+   distance to the first frame's range sample, so the map sits where a real run would put it): the map
+   learns from correct poses only.
+2. The map's event loss on the init chunks, beside the loss of predicting no events.
+3. The loss along the true motion of each new chunk: the new knot at ``a`` times the true step from the
+   previous knot (``a = 0`` no motion, ``a = 1`` the truth). A map that generalises has its minimum at 1;
+   a minimum below 1 means tracking on it under-estimates the motion.
+4. Tracking of ``--track`` new chunks from the constant-velocity prediction, the map frozen: the
+   rotation / translation error of each new knot against the truth (the error compounds through the
+   prediction, so its growth per frame is the tracker's bias on this map).
+
+Options after ``--set`` are config overrides, as for ``evgs run``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+
+import numpy as np
+import torch
+from evgs.config import load_config
+from evgs.data.sequence import Sequence
+from evgs.render import render
+from evgs.slam.lie import se3_exp, se3_inverse, se3_log
+from evgs.slam.loss import predicted_events
+from evgs.slam.optimize import StageSpec, run_stage
+from evgs.slam.pipeline import new_state
+from evgs.slam.stages import set_brightness_reference, track
+from evgs.slam.state import SlamState, stage_seed
+from evgs.slam.trajectory import Trajectory
+from evgs.slam.windows import EventData
+from rich.console import Console
+from rich.table import Table
+
+STEPS = (0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5)
+
+
+def gt_knots(seq: Sequence, data: EventData, init_depth: float) -> torch.Tensor:
+    """GT camera-to-world poses at the frames, relative to the first, in map units."""
+    gt = seq.poses_gt()
+    ranges = seq.range_samples()
+    if gt is None or ranges is None:
+        raise SystemExit(f"{seq.root}: needs poses_gt.txt and range.csv (a simulated sequence)")
+    t, T = gt
+    G = torch.as_tensor(T[np.searchsorted(t, data.frames_us)])
+    rel = se3_inverse(G[0]) @ G
+    rel[:, :3, 3] *= init_depth / float(ranges[1][0])
+    return rel
+
+
+def landscape(state: SlamState, rel: torch.Tensor, k: int, windows: int = 3) -> np.ndarray:
+    """Mean event loss (the configured L1/MSE) of chunk ``k`` with knot ``k+1`` at each of :data:`STEPS`."""
+    data, cfg = state.data, state.cfg
+    sampler = data.sampler(data.span(k, k + 1), 7)
+    wins = [data.windows(sampler, 1, 1) for _ in range(windows)]
+    step = se3_log(se3_inverse(rel[k]) @ rel[k + 1])
+    out = []
+    for a in STEPS:
+        knots = rel[: k + 2].clone()
+        knots[k + 1] = rel[k] @ se3_exp(a * step)
+        traj = Trajectory(data.frames_us[: k + 2], knots)
+        losses = []
+        for w in wins:
+            vm = traj.viewmats_at(np.concatenate([w.t_start, w.t_end]))
+            with torch.no_grad():
+                r = render(**state.gaussians.render_inputs(), viewmats=vm, camera=data.camera, background=0.0)
+            d = w.frames[0] - predicted_events(r.color[0, ..., 0], r.color[1, ..., 0], cfg.loss)
+            losses.append(float(d.abs().mean() if cfg.loss.event_loss == "l1" else (d * d).mean()))
+        out.append(np.mean(losses))
+    return np.array(out)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seq", default="synthetic/orbit_ambient")
+    ap.add_argument("--track", type=int, default=6, help="new chunks to track after the init")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    args = ap.parse_args()
+    console = Console()
+    cfg = load_config(f"configs/{args.seq}.toml", args.overrides)
+    seq = Sequence.load(f"data/{args.seq}")
+    cfg = dataclasses.replace(cfg, seq=str(seq.root))
+    data = EventData.from_sequence(seq, cfg.data)
+    state = new_state(cfg, data)
+    rel = gt_knots(seq, data, cfg.gaussians.init_depth)
+    m = state.num_init_chunks()
+    with torch.no_grad():
+        state.traj.base.copy_(rel[: m + 1])
+    spec = StageSpec(
+        "init", m, cfg.init.num_opti_steps_for_init, data.span(0, m), cfg.data.training_batch_size,
+        stage_seed(cfg.seed, "init", m), [], range(m + 1), train_gaussians=True, lr_boost=cfg.init.lr_boost,
+    )  # fmt: skip
+    t0 = time.perf_counter()
+    record = run_stage(state, spec)
+    set_brightness_reference(state)
+    console.print(
+        f"map from GT poses: {record.iterations} it, {time.perf_counter() - t0:.0f} s, "
+        f"{len(state.gaussians)} Gaussians"
+    )
+    inside = landscape(state, rel, m - 1)
+    table = Table(title="event loss along the true motion (÷ minimum); a = fraction of the true step")
+    table.add_column("chunk")
+    for a in STEPS:
+        table.add_column(f"a={a:g}", justify="right")
+    table.add_column("argmin", justify="right")
+    for k, vals in [(m - 1, inside)] + [(k, landscape(state, rel, k)) for k in range(m, m + args.track)]:
+        name = f"{k} (init)" if k < m else str(k)
+        table.add_row(name, *(f"{v / vals.min():.3f}" for v in vals), f"{STEPS[int(vals.argmin())]:g}")
+    console.print(table)
+    errors = Table(title=f"tracking on the frozen map ({cfg.tracking.solver}), error of each new knot")
+    for col in ("knot", "rotation °", "translation (map units)", "true step °"):
+        errors.add_column(col, justify="right")
+    for k in range(m, min(m + args.track, data.n_chunks)):
+        track(state, k)
+        with torch.no_grad():
+            err = se3_log(se3_inverse(rel[k + 1]) @ state.traj.knots()[k + 1])
+            true_step = se3_log(se3_inverse(rel[k]) @ rel[k + 1])
+        errors.add_row(
+            str(k + 1), f"{np.degrees(float(err[3:].norm())):.3f}", f"{float(err[:3].norm()):.4f}",
+            f"{np.degrees(float(true_step[3:].norm())):.3f}",
+        )  # fmt: skip
+    console.print(errors)
+
+
+if __name__ == "__main__":
+    main()
