@@ -30,11 +30,8 @@ pub(crate) struct Splat {
     pub z: f32,
     /// `ln(255·o)` plus a small margin: pixels with `σ > tau` cannot reach alpha ≥ 1/255.
     pub tau: f32,
-    /// Pixel rows and columns that can reach alpha ≥ 1/255 (inclusive, conservative by up to one).
-    pub row_lo: i32,
-    pub row_hi: i32,
-    pub col_lo: i32,
-    pub col_hi: i32,
+    /// `1/a`: locates the minimum of `σ` along a pixel row.
+    pub inv_a: f32,
 }
 
 /// One Gaussian projected into one view; a culled one has radius 0 and an empty rectangle.
@@ -193,10 +190,7 @@ pub(crate) fn project(g: &Params, view: &View, cam: &Camera, lims: &[f32; 4]) ->
         opacity: g.opacity,
         z: p.z,
         tau: (g.opacity / ALPHA_MIN).ln() + TAU_MARGIN,
-        row_lo: (v - ry - 0.5).floor().max(-1.0) as i32,
-        row_hi: (v + ry - 0.5).ceil().min(h) as i32,
-        col_lo: (u - rx - 0.5).floor().max(-1.0) as i32,
-        col_hi: (u + rx - 0.5).ceil().min(w) as i32,
+        inv_a: det / s[(1, 1)],
     };
     Some(Projected { splat, rect, radius: rx.max(ry) as i32 })
 }
