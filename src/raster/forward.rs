@@ -76,7 +76,6 @@ pub(crate) struct TileJob<'a> {
     pub rows: usize,
     pub ids: &'a [u32],
     pub splats: &'a [Projected],
-    pub colors: &'a [f32],
 }
 
 /// A hint to load the cache line holding `x` (a no-op where there is no prefetch instruction).
@@ -109,14 +108,12 @@ impl TileJob<'_> {
         splats.clear();
         colors.clear();
         for &g in &self.ids[range] {
-            let g = g as usize;
-            splats.push(self.splats[g].splat);
-            colors.push(std::array::from_fn(|ch| self.colors[g * NC + ch]));
+            let p = &self.splats[g as usize];
+            splats.push(p.splat);
+            colors.push(std::array::from_fn(|ch| p.color[ch]));
         }
         for &g in &self.ids[next] {
-            let g = g as usize;
-            prefetch(&self.splats[g]);
-            prefetch(&self.colors[g * NC]);
+            prefetch(&self.splats[g as usize]);
         }
     }
 
@@ -160,11 +157,13 @@ impl TileJob<'_> {
     }
 }
 
-/// A tile's outputs, tile-major: colour planes `[ch][row*16 + lane]`, depth, final T, and
-/// `last` = 1 + the tile-list index of the last composited splat (0 = none).
+/// A tile's outputs: its row pieces of the row-major colour (C values per pixel), depth and alpha
+/// images, and tile-major (`row*16 + lane`) final T and `last` = 1 + the tile-list index of the last
+/// composited splat (0 = none), which the backward pass reads.
 pub(crate) struct TileOut<'a> {
-    pub color: &'a mut [f32],
-    pub depth: &'a mut [f32],
+    pub color: Vec<&'a mut [f32]>,
+    pub depth: Vec<&'a mut [f32]>,
+    pub alpha: Vec<&'a mut [f32]>,
     pub t_final: &'a mut [f32],
     pub last: &'a mut [u32],
 }
@@ -202,7 +201,11 @@ impl std::ops::Add for TileCounts {
 }
 
 /// Composite one tile; returns the pixel–splat evaluations performed.
-pub(crate) fn render_tile<const NC: usize>(job: &TileJob, out: TileOut) -> TileCounts {
+pub(crate) fn render_tile<const NC: usize>(
+    job: &TileJob,
+    mut out: TileOut,
+    background: &[f32],
+) -> TileCounts {
     let px = lane_centres(job.x0);
     let mut segs = [[Seg::<NC> {
         t: [1.0; LANES],
@@ -258,12 +261,18 @@ pub(crate) fn render_tile<const NC: usize>(job: &TileJob, out: TileOut) -> TileC
                 standard += stops.map(|&k| if k > 0 { u64::from(k) } else { list_len }).sum::<u64>();
             }
             let lanes = r * TILE + h * LANES..r * TILE + (h + 1) * LANES;
-            for (ch, plane) in seg.color.iter().enumerate() {
-                out.color[ch * TILE * TILE..][lanes.clone()].copy_from_slice(plane);
-            }
-            out.depth[lanes.clone()].copy_from_slice(&seg.depth);
             out.t_final[lanes.clone()].copy_from_slice(&seg.t);
             out.last[lanes].copy_from_slice(&seg.last);
+        }
+    }
+    for (r, row) in segs.iter().enumerate().take(job.rows) {
+        for x in 0..job.lanes {
+            let (seg, l) = (&row[x / LANES], x % LANES);
+            out.alpha[r][x] = 1.0 - seg.t[l];
+            out.depth[r][x] = seg.depth[l];
+            for (ch, (c, bg)) in out.color[r][x * NC..(x + 1) * NC].iter_mut().zip(background).enumerate() {
+                *c = seg.color[ch][l] + seg.t[l] * bg;
+            }
         }
     }
     TileCounts { segments: evaluations, standard }

@@ -35,11 +35,14 @@ pub(crate) struct Splat {
 }
 
 /// One Gaussian projected into one view; a culled one has radius 0 and an empty rectangle.
-/// Exactly one cache line: the tile loops read these in depth order, i.e. at random addresses.
+/// Exactly one cache line holding all the tile loops read (they read these in depth order, i.e. at
+/// random addresses: one miss per splat, not two).
 #[derive(Clone, Copy, Debug, Default)]
 #[repr(C, align(64))]
 pub(crate) struct Projected {
     pub splat: Splat,
+    /// The colour (C channels; the rest zero).
+    pub color: [f32; 3],
     pub rect: Rect,
     pub radius: i32,
 }
@@ -66,6 +69,7 @@ pub(crate) struct Params<'a> {
     pub log_scale: &'a [f32],
     pub quat: &'a [f32],
     pub opacity: f32,
+    pub color: &'a [f32],
 }
 
 /// Normalised quaternion `(w, x, y, z)` and `1/|q|`; a zero (or non-finite) quaternion is the identity
@@ -192,7 +196,8 @@ pub(crate) fn project(g: &Params, view: &View, cam: &Camera, lims: &[f32; 4]) ->
         tau: (g.opacity / ALPHA_MIN).ln() + TAU_MARGIN,
         inv_a: det / s[(1, 1)],
     };
-    Some(Projected { splat, rect, radius: rx.max(ry) as i32 })
+    let color = std::array::from_fn(|ch| g.color.get(ch).copied().unwrap_or(0.0));
+    Some(Projected { splat, color, rect, radius: rx.max(ry) as i32 })
 }
 
 /// Upstream gradient of one Gaussian in one view, summed over its pixels.
@@ -345,8 +350,13 @@ mod tests {
 
     #[test]
     fn zero_quaternion_is_identity_without_nan() {
-        let params =
-            Params { mean: &[0.1, 0.0, 2.0], log_scale: &[-2.0, -1.5, -2.5], quat: &[0.0; 4], opacity: 0.5 };
+        let params = Params {
+            mean: &[0.1, 0.0, 2.0],
+            log_scale: &[-2.0, -1.5, -2.5],
+            quat: &[0.0; 4],
+            opacity: 0.5,
+            color: &[1.0],
+        };
         let c = cam();
         let p = project(&params, &identity(), &c, &c.fov_limits()).unwrap();
         assert!(p.radius > 0 && p.splat.a.is_finite() && p.splat.b == 0.0);
@@ -361,7 +371,13 @@ mod tests {
         let c = cam();
         let lims = c.fov_limits();
         let at = |mean: &'static [f32]| {
-            let p = Params { mean, log_scale: &[-3.0; 3], quat: &[1.0, 0.0, 0.0, 0.0], opacity: 0.9 };
+            let p = Params {
+                mean,
+                log_scale: &[-3.0; 3],
+                quat: &[1.0, 0.0, 0.0, 0.0],
+                opacity: 0.9,
+                color: &[1.0],
+            };
             project(&p, &identity(), &c, &lims).is_some()
         };
         assert!(!at(&[0.0, 0.0, -1.0]));

@@ -98,7 +98,12 @@ mod tests {
         let proj: Vec<Projected> =
             [(full, 2.0), (left, 1.0), (Rect::default(), 0.5), (full, 1.0), (left, 3.0)]
                 .iter()
-                .map(|&(rect, z)| Projected { splat: Splat { z, ..Default::default() }, rect, radius: 1 })
+                .map(|&(rect, z)| Projected {
+                    splat: Splat { z, ..Default::default() },
+                    rect,
+                    radius: 1,
+                    ..Default::default()
+                })
                 .collect();
         let bins = bin(&proj, 2, 1);
         assert_eq!(bins.tile(0), &[1, 3, 0, 4]);
