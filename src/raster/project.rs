@@ -110,14 +110,17 @@ struct Geometry {
     cov2d: Matrix2<f32>,
 }
 
-fn geometry(g: &Params, view: &View, cam: &Camera, lims: &[f32; 4]) -> Geometry {
-    let (qhat, inv_qnorm) = normalise(g.quat);
-    let rq = rotation(qhat);
-    let scale = Vector3::new(g.log_scale[0].exp(), g.log_scale[1].exp(), g.log_scale[2].exp());
-    let m = rq * Matrix3::from_diagonal(&scale);
-    let cov_world = m * m.transpose();
-    let p = view.r * Vector3::new(g.mean[0], g.mean[1], g.mean[2]) + view.t;
-    let cov_cam = view.r * cov_world * view.r.transpose();
+/// The projection Jacobian at camera point `p`, with the field-of-view clamp.
+struct Jacobian {
+    jac: Matrix2x3<f32>,
+    /// The (possibly clamped) `x'`, `y'` and whether each was clamped.
+    tx: f32,
+    ty: f32,
+    clamped_x: bool,
+    clamped_y: bool,
+}
+
+fn jacobian(p: &Vector3<f32>, cam: &Camera, lims: &[f32; 4]) -> Jacobian {
     let z = p.z;
     let (xz, yz) = (p.x / z, p.y / z);
     let cxz = xz.clamp(-lims[0], lims[1]);
@@ -125,42 +128,56 @@ fn geometry(g: &Params, view: &View, cam: &Camera, lims: &[f32; 4]) -> Geometry 
     let (tx, ty) = (cxz * z, cyz * z);
     let jac =
         Matrix2x3::new(cam.fx / z, 0.0, -cam.fx * tx / (z * z), 0.0, cam.fy / z, -cam.fy * ty / (z * z));
+    Jacobian { jac, tx, ty, clamped_x: cxz != xz, clamped_y: cyz != yz }
+}
+
+fn camera_point(g: &Params, view: &View) -> Vector3<f32> {
+    view.r * Vector3::new(g.mean[0], g.mean[1], g.mean[2]) + view.t
+}
+
+fn scales(g: &Params) -> Vector3<f32> {
+    Vector3::new(g.log_scale[0].exp(), g.log_scale[1].exp(), g.log_scale[2].exp())
+}
+
+fn geometry(g: &Params, view: &View, cam: &Camera, lims: &[f32; 4]) -> Geometry {
+    let (qhat, inv_qnorm) = normalise(g.quat);
+    let rq = rotation(qhat);
+    let scale = scales(g);
+    let m = rq * Matrix3::from_diagonal(&scale);
+    let cov_world = m * m.transpose();
+    let p = camera_point(g, view);
+    let cov_cam = view.r * cov_world * view.r.transpose();
+    let Jacobian { jac, tx, ty, clamped_x, clamped_y } = jacobian(&p, cam, lims);
     let cov2d = jac * cov_cam * jac.transpose() + Matrix2::identity() * DILATION;
-    Geometry {
-        qhat,
-        inv_qnorm,
-        rq,
-        scale,
-        cov_world,
-        p,
-        cov_cam,
-        tx,
-        ty,
-        clamped_x: cxz != xz,
-        clamped_y: cyz != yz,
-        jac,
-        cov2d,
-    }
+    Geometry { qhat, inv_qnorm, rq, scale, cov_world, p, cov_cam, tx, ty, clamped_x, clamped_y, jac, cov2d }
 }
 
 /// Project one Gaussian into one view: the splat, its tile rectangle and its screen radius
 /// (`max(r_x, r_y)`), or `None` when culled.
 pub(crate) fn project(g: &Params, view: &View, cam: &Camera, lims: &[f32; 4]) -> Option<Projected> {
-    let p = view.r * Vector3::new(g.mean[0], g.mean[1], g.mean[2]) + view.t;
+    let p = camera_point(g, view);
     // Positive tests, so that NaN depths or opacities are culled too.
     let in_range = p.z >= cam.near && p.z <= cam.far && g.opacity >= ALPHA_MIN;
     if !in_range {
         return None;
     }
-    let geo = geometry(g, view, cam, lims);
-    let s = geo.cov2d;
+    // Σ2D = (J·W·R·S)(J·W·R·S)ᵀ + 0.3·I: one 2×3 factor instead of three 3×3 covariance products
+    // (the backward pass, which needs those intermediates, uses `geometry`).
+    let (qhat, _) = normalise(g.quat);
+    let mut wrs = view.r * rotation(qhat);
+    for (mut col, s) in wrs.column_iter_mut().zip(scales(g).iter()) {
+        col *= *s;
+    }
+    let factor = jacobian(&p, cam, lims).jac * wrs;
+    let s = factor * factor.transpose() + Matrix2::identity() * DILATION;
     let det = s[(0, 0)] * s[(1, 1)] - s[(0, 1)] * s[(1, 0)];
     let invertible = det > 0.0;
     if !invertible {
         return None;
     }
     let inv_det = 1.0 / det;
-    let extent = MAX_EXTENT.min((2.0 * (g.opacity / ALPHA_MIN).ln()).sqrt());
+    let ln_reach = (g.opacity / ALPHA_MIN).ln();
+    let extent = MAX_EXTENT.min((2.0 * ln_reach).sqrt());
     let rx = (extent * s[(0, 0)].sqrt()).ceil();
     let ry = (extent * s[(1, 1)].sqrt()).ceil();
     let visible = rx > 0.0 || ry > 0.0;
@@ -193,7 +210,7 @@ pub(crate) fn project(g: &Params, view: &View, cam: &Camera, lims: &[f32; 4]) ->
         c: s[(0, 0)] * inv_det,
         opacity: g.opacity,
         z: p.z,
-        tau: (g.opacity / ALPHA_MIN).ln() + TAU_MARGIN,
+        tau: ln_reach + TAU_MARGIN,
         inv_a: det / s[(1, 1)],
     };
     let color = std::array::from_fn(|ch| g.color.get(ch).copied().unwrap_or(0.0));
