@@ -177,10 +177,9 @@ struct Seg<const NC: usize> {
     color: [Lanes; NC],
     depth: Lanes,
     last: [u32; LANES],
-    /// 1 + the tile-list index of the splat at which the pixel stopped (0 = it never stopped).
+    /// 1 + the tile-list index of the splat at which the pixel stopped; 0 while it is live (and
+    /// `u32::MAX` for a lane outside the image, so that it never is).
     stop_at: [u32; LANES],
-    /// 1 once a pixel has stopped (or lies outside the image).
-    done: [u32; LANES],
 }
 
 /// Pixel–splat evaluations of one tile, counted two ways (see [`crate::raster::Forward::evaluations`]).
@@ -212,15 +211,14 @@ pub(crate) fn render_tile<const NC: usize>(
         color: [[0.0; LANES]; NC],
         depth: [0.0; LANES],
         last: [0; LANES],
-        stop_at: [0; LANES],
-        done: [1; LANES],
+        stop_at: [u32::MAX; LANES],
     }; SEGS]; TILE];
     // Bit `h·16 + r`: segment `h` of row `r` still has a live pixel.
     let mut alive = 0u32;
     for (r, row) in segs.iter_mut().enumerate().take(job.rows) {
         for (h, seg) in row.iter_mut().enumerate() {
             let n = job.seg_lanes(h);
-            seg.done = std::array::from_fn(|l| u32::from(l >= n));
+            seg.stop_at = std::array::from_fn(|l| if l < n { 0 } else { u32::MAX });
             alive |= u32::from(n > 0) << (h * TILE + r);
         }
     }
@@ -245,7 +243,7 @@ pub(crate) fn render_tile<const NC: usize>(
                 evaluations += job.seg_lanes(h) as u64;
                 let seg = &mut segs[r][h];
                 composite_seg::<NC>(&s, &plan.row(r), &col, k1, &px[h], seg);
-                if seg.done.iter().all(|&d| d != 0) {
+                if seg.stop_at.iter().all(|&k| k != 0) {
                     alive &= !(1 << bit);
                 }
             }
@@ -293,7 +291,7 @@ fn composite_seg<const NC: usize>(
     for l in 0..LANES {
         let (sigma, _, alpha) = alpha_at(s, row, s.u - px[l]);
         // `&` rather than `&&`: no short-circuit branches in the lane loop.
-        let ok = (sigma >= 0.0) & (alpha >= ALPHA_MIN) & (seg.done[l] == 0);
+        let ok = (sigma >= 0.0) & (alpha >= ALPHA_MIN) & (seg.stop_at[l] == 0);
         let t_next = seg.t[l] * (1.0 - alpha);
         let stop = ok & (t_next <= T_MIN);
         let take = ok & !stop;
@@ -305,6 +303,5 @@ fn composite_seg<const NC: usize>(
         seg.t[l] = if take { t_next } else { seg.t[l] };
         seg.last[l] = if take { k1 } else { seg.last[l] };
         seg.stop_at[l] = if stop { k1 } else { seg.stop_at[l] };
-        seg.done[l] |= u32::from(stop);
     }
 }
