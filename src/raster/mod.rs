@@ -134,8 +134,9 @@ pub struct Forward {
 impl Forward {
     /// Pixel–Gaussian evaluations: (pixel, Gaussian) pairs whose alpha was computed, i.e. for every
     /// tile and every splat in its list until the tile stopped, the in-image pixels of the 8-pixel
-    /// row segments that intersect the splat's extent and still had a live pixel. (The backward pass
-    /// counts the same way, over segments with a pixel the splat was composited into or in front of.)
+    /// row segments that the splat's ellipse may reach (its tile plan) and that still had a live
+    /// pixel. (The backward pass counts the same way, over segments with a pixel the splat was
+    /// composited into or in front of.)
     /// This is fewer than the standard count, [`RasterState::forward_evaluations_standard`].
     pub fn evaluations(&self) -> u64 {
         self.state.forward_evaluations
