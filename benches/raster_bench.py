@@ -231,7 +231,8 @@ def main() -> None:
                 f"{rate(std, r2[f'{d}_ms']):>4}/{rate(seg, r2[f'{d}_ms']):<4}"
             )
         tf, tb = tiled[(r2["n"], r2["w"], r2["h"])]
-        cols.append(f"{dense_f:>8.0f}/{dense_b:<7.0f} {tf:>6.0f}/{tb:<6.0f}")
+        tb_text = f"{tb:<6.0f}" if np.isfinite(tb) else f"{'-':<6}"
+        cols.append(f"{dense_f:>8.0f}/{dense_b:<7.0f} {tf:>6.0f}/{tb_text}")
         cols.append(
             f"{ratio(dense_f, r2['fwd_ms'], 5)}/{ratio(dense_b, r2['bwd_ms'], 4)} "
             f"{ratio(tf, r2['fwd_ms'], 4)}/{ratio(tb, r2['bwd_ms'], 4)}"
