@@ -1,5 +1,6 @@
 """Rasterizer benchmark (not a test): forward and backward time per view and pixel–Gaussian evaluations
-per second for the Rust rasterizer, 1 and 2 threads, beside the dense float32 torch reference.
+per second for the Rust rasterizer, 1 and 2 threads, beside two pure-torch float32 baselines: the dense
+reference and the tile-based torch rasterizer.
 
 Pixel–Gaussian evaluations are counted two ways, side by side:
 - "std" (the standard 3DGS/gsplat count, the sense of the speed targets): forward, every in-image pixel ×
@@ -8,8 +9,9 @@ Pixel–Gaussian evaluations are counted two ways, side by side:
 - "seg" (what this rasterizer really computes): for each tile and each splat in its list until the
   tile's pixels all stopped, the in-image pixels of the 8-pixel row segments (one AVX2 register) that
   the splat's ellipse reaches and that still had a live pixel (``raster::Forward::evaluations``).
-The dense reference evaluates every Gaussian at every pixel; it is compared by wall time for the same
-image (the speed-up column).
+The dense reference (tests/raster_reference.py) evaluates every Gaussian at every pixel; the tile-based
+torch rasterizer (tests/raster_tile_torch.py) runs the tiled algorithm with torch ops, every Gaussian of
+a tile against every pixel of it. Both are compared by wall time for the same image (speed-up columns).
 
 Run: ``make dev && PYTHONPATH=python:tests $VENV/bin/python benches/raster_bench.py [--quick]``
 """
@@ -142,6 +144,30 @@ def measure_reference(w: int, h: int) -> tuple[float, float]:
     return best
 
 
+def measure_tile_torch(n: int, w: int, h: int) -> tuple[float, float]:
+    """Tile-based torch rasterizer on all ``n`` Gaussians: forward and backward ms for one view, the best
+    over 1 and 2 torch threads (one run each). At 1 M Gaussians only the forward pass is timed (without
+    autograd: the saved per-tile tensors would need tens of GB); the backward is then NaN."""
+    from raster_tile_torch import render_tiles
+
+    cam, vm = camera_for(w, h)
+    with_grad = n < 1_000_000
+    g = {k: v.requires_grad_(with_grad) for k, v in spacecraft(n).items()}
+    best = (np.inf, np.inf if with_grad else np.nan)
+    for threads in (1, 2):
+        torch.set_num_threads(threads)
+        with torch.set_grad_enabled(with_grad):
+            t0 = time.perf_counter()
+            color, depth, alpha, _ = render_tiles(**g, viewmats=vm, camera=cam)
+            t1 = time.perf_counter()
+        if with_grad:
+            (color.sum() + depth.sum() + alpha.sum()).backward()
+            best = (best[0], min(best[1], 1e3 * (time.perf_counter() - t1)))
+        best = (min(best[0], 1e3 * (t1 - t0)), best[1])
+        del color, depth, alpha
+    return best
+
+
 def cpu_model() -> str:
     for line in Path("/proc/cpuinfo").read_text().splitlines():
         if line.startswith("model name"):
@@ -164,6 +190,7 @@ def main() -> None:
         out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True).stdout
         results[threads] = json.loads(out)
     ref = {(w, h): measure_reference(w, h) for w, h in SIZES}
+    tiled = {(r["n"], r["w"], r["h"]): measure_tile_torch(r["n"], r["w"], r["h"]) for r in results[2]}
 
     print(f"CPU: {cpu_model()}, {os.cpu_count()} logical CPUs; load average {os.getloadavg()[0]:.1f}")
     print("evals: 'std' = standard 3DGS/gsplat count, 'seg' = pairs this rasterizer evaluates (module")
@@ -172,15 +199,20 @@ def main() -> None:
     )
     print("CPU ms of the 1-thread run (meaningful when the machine is shared); dense torch float32 reference")
     print(
-        f"extrapolated linearly from {REF_SUBSET} Gaussians; speed-up = dense / Rust 2T, forward/backward\n"
+        f"extrapolated linearly from {REF_SUBSET} Gaussians; tile-based torch float32 (all Gaussians; at 1 M"
     )
+    print("forward only); speed-up = torch ms / Rust 2T ms, forward/backward, vs dense and vs tile-torch\n")
     head = (
         f"{'image':>7} {'N':>7} {'cov':>4} | {'fwd evals std/seg':>17} {'ms 1T':>7} {'cpu':>6} {'2T':>6} "
         f"{'G/s 1T':>9} {'G/s 2T':>9} | {'bwd evals std/seg':>17} {'ms 1T':>7} {'cpu':>6} {'2T':>6} "
-        f"{'G/s 1T':>9} {'G/s 2T':>9} | {'dense fwd/bwd ms':>16} | {'speed-up':>10}"
+        f"{'G/s 1T':>9} {'G/s 2T':>9} | {'dense fwd/bwd ms':>16} {'tile-torch':>13} | "
+        f"{'x vs dense':>11} {'x vs tiled':>11}"
     )
     print(head)
     print("-" * len(head))
+
+    def ratio(torch_ms: float, rust_ms: float, width: int) -> str:
+        return f"{torch_ms / rust_ms:>{width}.0f}x" if np.isfinite(torch_ms) else f"{'-':>{width + 1}}"
 
     def rate(evals: int, ms: float) -> str:
         return f"{evals / ms / 1e6:.2f}"
@@ -198,8 +230,13 @@ def main() -> None:
                 f"{rate(std, r1[f'{d}_ms']):>4}/{rate(seg, r1[f'{d}_ms']):<4} "
                 f"{rate(std, r2[f'{d}_ms']):>4}/{rate(seg, r2[f'{d}_ms']):<4}"
             )
-        cols.append(f"{dense_f:>8.0f}/{dense_b:<7.0f}")
-        cols.append(f"{dense_f / r2['fwd_ms']:>5.0f}x/{dense_b / r2['bwd_ms']:<4.0f}x")
+        tf, tb = tiled[(r2["n"], r2["w"], r2["h"])]
+        tb_text = f"{tb:<6.0f}" if np.isfinite(tb) else f"{'-':<6}"
+        cols.append(f"{dense_f:>8.0f}/{dense_b:<7.0f} {tf:>6.0f}/{tb_text}")
+        cols.append(
+            f"{ratio(dense_f, r2['fwd_ms'], 5)}/{ratio(dense_b, r2['bwd_ms'], 4)} "
+            f"{ratio(tf, r2['fwd_ms'], 4)}/{ratio(tb, r2['bwd_ms'], 4)}"
+        )
         print(" | ".join(cols))
 
 

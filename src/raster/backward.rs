@@ -3,7 +3,7 @@
 //! the sum over the tile's pixels in a fixed lane order, so no two threads ever write the same memory.
 
 use super::camera::TILE;
-use super::forward::{alpha_at, lane_centres, RowTerms, TileJob, ALPHA_MAX, BATCH, LANES, SEGS};
+use super::forward::{alpha_at, lane_centres, seg_of_bit, RowTerms, TileJob, ALPHA_MAX, BATCH, LANES, SEGS};
 use super::project::{Splat, SplatGrad, ALPHA_MIN};
 
 type Lanes = [f32; LANES];
@@ -81,7 +81,17 @@ pub(crate) fn backward_tile<const NC: usize>(
     let px = lane_centres(job.x0);
     let mut segs: Vec<[Seg<NC>; SEGS]> =
         (0..job.rows).map(|r| std::array::from_fn(|h| seg_state::<NC>(job, input, r, h))).collect();
-    let k_end = segs.iter().flatten().map(|s| s.max_last).max().unwrap_or(0) as usize;
+    // Segments in the order in which they become relevant going back to front: segment (r, h) needs
+    // the splats before its largest `last`; `relevant` has bit `h·16 + r` once it does.
+    let mut activation: Vec<(u32, u32)> = segs
+        .iter()
+        .enumerate()
+        .flat_map(|(r, row)| row.iter().enumerate().map(move |(h, s)| (s.max_last, (h * TILE + r) as u32)))
+        .filter(|&(max_last, _)| max_last > 0)
+        .collect();
+    activation.sort_unstable_by(|a, b| b.cmp(a));
+    let k_end = activation.first().map_or(0, |a| a.0 as usize);
+    let (mut relevant, mut next) = (0u32, 0);
     out.fill(SplatGrad::default());
     let mut evaluations = 0u64;
     let (mut splats, mut colors) = (Vec::with_capacity(BATCH), Vec::with_capacity(BATCH));
@@ -91,20 +101,23 @@ pub(crate) fn backward_tile<const NC: usize>(
         job.gather::<NC>(start..end, start.saturating_sub(BATCH)..start, &mut splats, &mut colors);
         for (j, (&s, &col)) in splats.iter().zip(&colors).enumerate().rev() {
             let k = start + j;
+            while next < activation.len() && activation[next].0 as usize > k {
+                relevant |= 1 << activation[next].1;
+                next += 1;
+            }
             // (Copies: locals that provably do not alias the tile state keep the lane loop vectorised.)
-            let Some(((r0, r1), (h0, h1))) = job.span(&s) else { continue };
+            let plan = job.plan(&s);
+            let mut work = plan.mask & relevant;
+            if work == 0 {
+                continue;
+            }
             let mut acc = LaneAcc::<NC>::new();
-            for (r, row_segs) in segs.iter_mut().enumerate().take(r1 + 1).skip(r0) {
-                let row = RowTerms::new(&s, (job.y0 + r) as f32 + 0.5);
-                let Some((h0, h1)) = job.row_segs(&s, &row, (h0, h1)) else { continue };
-                for h in h0..=h1 {
-                    let seg = &mut row_segs[h];
-                    if seg.max_last as usize <= k {
-                        continue;
-                    }
-                    evaluations += job.seg_lanes(h) as u64;
-                    backward_seg::<NC>(&s, &row, &col, k as u32, &px[h], seg, &mut acc);
-                }
+            while work != 0 {
+                let bit = work.trailing_zeros();
+                work &= work - 1;
+                let (r, h) = seg_of_bit(bit);
+                evaluations += job.seg_lanes(h) as u64;
+                backward_seg::<NC>(&s, &plan.row(r), &col, k as u32, &px[h], &mut segs[r][h], &mut acc);
             }
             out[k] = acc.reduce();
         }

@@ -1,9 +1,10 @@
 //! Front-to-back compositing of one 16×16 tile (RASTER_MATH.md, "Compositing").
 //!
 //! Vectorised across pixels: a tile is 16 rows × 2 segments of 8 lanes (one AVX2 register each).
-//! For each splat of the tile (front to back), a branch-free loop runs over the 8 lanes of every
-//! segment the splat's extent reaches; per-pixel state lives in the tile's stack arrays. Segments
-//! whose pixels have all stopped are skipped, and the tile stops when all have.
+//! For each splat of the tile (front to back), a [`TilePlan`] computed for all 16 rows at once gives
+//! a 32-bit mask of the segments its ellipse reaches; a branch-free loop runs over the 8 lanes of each
+//! segment in that mask that still has a live pixel (a second mask). Per-pixel state lives in the
+//! tile's stack arrays, and the tile stops when no segment is live.
 
 use super::camera::TILE;
 use super::fastmath;
@@ -26,12 +27,28 @@ pub(crate) struct RowTerms {
     half_c_dy2: f32,
 }
 
-impl RowTerms {
+/// What one splat does to one tile, computed for all 16 rows at once (branch-free, so it vectorises):
+/// the per-row terms of `σ` and the 8-lane segments the splat can reach with alpha ≥ 1/255.
+pub(crate) struct TilePlan {
+    dy: [f32; TILE],
+    b_dy: [f32; TILE],
+    half_c_dy2: [f32; TILE],
+    half_a: f32,
+    /// Bit `h·16 + r` set: segment `h` of row `r` may hold a pixel with `σ ≤ tau`.
+    pub mask: u32,
+}
+
+impl TilePlan {
     #[inline(always)]
-    pub fn new(s: &Splat, py: f32) -> Self {
-        let dy = s.v - py;
-        RowTerms { dy, half_a: 0.5 * s.a, b_dy: s.b * dy, half_c_dy2: 0.5 * s.c * dy * dy }
+    pub fn row(&self, r: usize) -> RowTerms {
+        RowTerms { dy: self.dy[r], half_a: self.half_a, b_dy: self.b_dy[r], half_c_dy2: self.half_c_dy2[r] }
     }
+}
+
+/// Segment `h` and row `r` of mask bit `bit` (see [`TilePlan::mask`]).
+#[inline(always)]
+pub(crate) fn seg_of_bit(bit: u32) -> (usize, usize) {
+    (bit as usize % TILE, bit as usize / TILE)
 }
 
 /// `(σ, G = e^{-σ}, α = min(0.99, o·G))` of a splat at offset `dx` = mean − pixel centre on a row.
@@ -50,15 +67,6 @@ pub(crate) fn lane_centres(x0: usize) -> [[f32; LANES]; SEGS] {
     std::array::from_fn(|h| std::array::from_fn(|l| (x0 + h * LANES + l) as f32 + 0.5))
 }
 
-/// Inclusive tile-local index range `[lo, hi]` of `[first, last]` clipped to `[0, n)`, for cells of
-/// `cell` pixels starting at pixel `origin`; `None` if empty.
-#[inline(always)]
-fn clip_span(first: i32, last: i32, origin: usize, cell: usize, n: usize) -> Option<(usize, usize)> {
-    let lo = (first - origin as i32).max(0) as usize / cell;
-    let hi = (last - origin as i32).min((n * cell) as i32 - 1);
-    (hi >= 0 && hi as usize / cell >= lo).then(|| (lo, hi as usize / cell))
-}
-
 /// Where one tile sits and what it composites.
 pub(crate) struct TileJob<'a> {
     pub x0: usize,
@@ -68,7 +76,6 @@ pub(crate) struct TileJob<'a> {
     pub rows: usize,
     pub ids: &'a [u32],
     pub splats: &'a [Projected],
-    pub colors: &'a [f32],
 }
 
 /// A hint to load the cache line holding `x` (a no-op where there is no prefetch instruction).
@@ -101,43 +108,46 @@ impl TileJob<'_> {
         splats.clear();
         colors.clear();
         for &g in &self.ids[range] {
-            let g = g as usize;
-            splats.push(self.splats[g].splat);
-            colors.push(std::array::from_fn(|ch| self.colors[g * NC + ch]));
+            let p = &self.splats[g as usize];
+            splats.push(p.splat);
+            colors.push(std::array::from_fn(|ch| p.color[ch]));
         }
         for &g in &self.ids[next] {
-            let g = g as usize;
-            prefetch(&self.splats[g]);
-            prefetch(&self.colors[g * NC]);
+            prefetch(&self.splats[g as usize]);
         }
     }
 
-    /// The tile rows and row segments a splat's extent reaches.
+    /// The plan of splat `s` on this tile. A segment is reached if the minimum of `σ` over its lanes'
+    /// offsets, widened by a pixel on each side, is at most `tau`: on a row `σ(dx)` is a parabola in
+    /// `dx` with its vertex at `−b·dy/a`, so the minimum over an interval is at the clamped vertex. No
+    /// square roots or divisions, and it trims the tile to the splat's ellipse.
+    #[allow(clippy::needless_range_loop)]
     #[inline(always)]
-    pub fn span(&self, s: &Splat) -> Option<((usize, usize), (usize, usize))> {
-        let rows = clip_span(s.row_lo, s.row_hi, self.y0, 1, self.rows)?;
-        let segs = clip_span(s.col_lo, s.col_hi, self.x0, LANES, SEGS)?;
-        Some((rows, segs))
-    }
-
-    /// The segments of the row described by `row`, within `segs`, where the splat can reach alpha ≥
-    /// 1/255: the chord `σ(dx) ≤ tau` of the ellipse, widened by a pixel on each side; `None` if the
-    /// row misses it. Cheaper than evaluating a segment, and it trims the square extent to the ellipse.
-    #[inline(always)]
-    pub fn row_segs(&self, s: &Splat, row: &RowTerms, segs: (usize, usize)) -> Option<(usize, usize)> {
-        // ½a·dx² + b·dy·dx + ½c·dy² − tau ≤ 0, a > 0.
-        let disc = row.b_dy * row.b_dy - s.a * (2.0 * (row.half_c_dy2 - s.tau));
-        if disc.is_nan() || disc < 0.0 {
-            return None;
+    pub fn plan(&self, s: &Splat) -> TilePlan {
+        let half_a = 0.5 * s.a;
+        let mut p = TilePlan { dy: [0.0; TILE], b_dy: [0.0; TILE], half_c_dy2: [0.0; TILE], half_a, mask: 0 };
+        // dx = u − (x0 + 8h + j + ½), j in 0..8, widened by one pixel.
+        let lo: [f32; SEGS] =
+            std::array::from_fn(|h| s.u - (self.x0 + h * LANES) as f32 - (LANES as f32 + 0.5));
+        let hi: [f32; SEGS] = std::array::from_fn(|h| s.u - (self.x0 + h * LANES) as f32 + 0.5);
+        let mut reach = [[0u32; TILE]; SEGS];
+        for r in 0..TILE {
+            let dy = s.v - ((self.y0 + r) as f32 + 0.5);
+            let b_dy = s.b * dy;
+            let half_c_dy2 = 0.5 * s.c * dy * dy;
+            let vertex = -b_dy * s.inv_a;
+            for h in 0..SEGS {
+                let d = if vertex > lo[h] { vertex } else { lo[h] };
+                let d = if d < hi[h] { d } else { hi[h] };
+                let sigma = d.mul_add(half_a.mul_add(d, b_dy), half_c_dy2);
+                reach[h][r] = u32::from(sigma <= s.tau) << (h * TILE + r);
+            }
+            p.dy[r] = dy;
+            p.b_dy[r] = b_dy;
+            p.half_c_dy2[r] = half_c_dy2;
         }
-        let root = disc.sqrt();
-        let (dx_lo, dx_hi) = ((-row.b_dy - root) / s.a, (-row.b_dy + root) / s.a);
-        // Column j has dx = u − (j + ½).
-        let first = (s.u - 0.5 - dx_hi).floor().max(-2.0) as i32 - 1;
-        let last = (s.u - 0.5 - dx_lo).ceil().min(1e9) as i32 + 1;
-        let (h0, h1) = clip_span(first, last, self.x0, LANES, SEGS)?;
-        let (h0, h1) = (h0.max(segs.0), h1.min(segs.1));
-        (h0 <= h1).then_some((h0, h1))
+        p.mask = reach.iter().flatten().fold(0, |m, &b| m | b);
+        p
     }
 
     /// In-image lanes of segment `h`.
@@ -147,11 +157,13 @@ impl TileJob<'_> {
     }
 }
 
-/// A tile's outputs, tile-major: colour planes `[ch][row*16 + lane]`, depth, final T, and
-/// `last` = 1 + the tile-list index of the last composited splat (0 = none).
+/// A tile's outputs: its row pieces of the row-major colour (C values per pixel), depth and alpha
+/// images, and tile-major (`row*16 + lane`) final T and `last` = 1 + the tile-list index of the last
+/// composited splat (0 = none), which the backward pass reads.
 pub(crate) struct TileOut<'a> {
-    pub color: &'a mut [f32],
-    pub depth: &'a mut [f32],
+    pub color: Vec<&'a mut [f32]>,
+    pub depth: Vec<&'a mut [f32]>,
+    pub alpha: Vec<&'a mut [f32]>,
     pub t_final: &'a mut [f32],
     pub last: &'a mut [u32],
 }
@@ -165,10 +177,9 @@ struct Seg<const NC: usize> {
     color: [Lanes; NC],
     depth: Lanes,
     last: [u32; LANES],
-    /// 1 + the tile-list index of the splat at which the pixel stopped (0 = it never stopped).
+    /// 1 + the tile-list index of the splat at which the pixel stopped; 0 while it is live (and
+    /// `u32::MAX` for a lane outside the image, so that it never is).
     stop_at: [u32; LANES],
-    /// 1 once a pixel has stopped (or lies outside the image).
-    done: [u32; LANES],
 }
 
 /// Pixel–splat evaluations of one tile, counted two ways (see [`crate::raster::Forward::evaluations`]).
@@ -189,53 +200,51 @@ impl std::ops::Add for TileCounts {
 }
 
 /// Composite one tile; returns the pixel–splat evaluations performed.
-pub(crate) fn render_tile<const NC: usize>(job: &TileJob, out: TileOut) -> TileCounts {
+pub(crate) fn render_tile<const NC: usize>(
+    job: &TileJob,
+    mut out: TileOut,
+    background: &[f32],
+) -> TileCounts {
     let px = lane_centres(job.x0);
     let mut segs = [[Seg::<NC> {
         t: [1.0; LANES],
         color: [[0.0; LANES]; NC],
         depth: [0.0; LANES],
         last: [0; LANES],
-        stop_at: [0; LANES],
-        done: [1; LANES],
+        stop_at: [u32::MAX; LANES],
     }; SEGS]; TILE];
-    let mut alive = [[false; SEGS]; TILE];
-    let mut alive_count = 0;
+    // Bit `h·16 + r`: segment `h` of row `r` still has a live pixel.
+    let mut alive = 0u32;
     for (r, row) in segs.iter_mut().enumerate().take(job.rows) {
         for (h, seg) in row.iter_mut().enumerate() {
             let n = job.seg_lanes(h);
-            seg.done = std::array::from_fn(|l| u32::from(l >= n));
-            alive[r][h] = n > 0;
-            alive_count += usize::from(n > 0);
+            seg.stop_at = std::array::from_fn(|l| if l < n { 0 } else { u32::MAX });
+            alive |= u32::from(n > 0) << (h * TILE + r);
         }
     }
     let mut evaluations = 0u64;
     let (mut splats, mut colors) = (Vec::with_capacity(BATCH), Vec::with_capacity(BATCH));
     let mut start = 0;
-    while start < job.ids.len() && alive_count > 0 {
+    while start < job.ids.len() && alive != 0 {
         let end = job.ids.len().min(start + BATCH);
         job.gather::<NC>(start..end, end..job.ids.len().min(end + BATCH), &mut splats, &mut colors);
         for (j, (&s, &col)) in splats.iter().zip(&colors).enumerate() {
-            if alive_count == 0 {
+            if alive == 0 {
                 break;
             }
             // (Copies: locals that provably do not alias the tile state keep the lane loop vectorised.)
-            let Some(((r0, r1), (h0, h1))) = job.span(&s) else { continue };
+            let plan = job.plan(&s);
             let k1 = (start + j) as u32 + 1;
-            for r in r0..=r1 {
-                let row = RowTerms::new(&s, (job.y0 + r) as f32 + 0.5);
-                let Some((h0, h1)) = job.row_segs(&s, &row, (h0, h1)) else { continue };
-                for h in h0..=h1 {
-                    if !alive[r][h] {
-                        continue;
-                    }
-                    evaluations += job.seg_lanes(h) as u64;
-                    let seg = &mut segs[r][h];
-                    composite_seg::<NC>(&s, &row, &col, k1, &px[h], seg);
-                    if seg.done.iter().all(|&d| d != 0) {
-                        alive[r][h] = false;
-                        alive_count -= 1;
-                    }
+            let mut work = plan.mask & alive;
+            while work != 0 {
+                let bit = work.trailing_zeros();
+                work &= work - 1;
+                let (r, h) = seg_of_bit(bit);
+                evaluations += job.seg_lanes(h) as u64;
+                let seg = &mut segs[r][h];
+                composite_seg::<NC>(&s, &plan.row(r), &col, k1, &px[h], seg);
+                if seg.stop_at.iter().all(|&k| k != 0) {
+                    alive &= !(1 << bit);
                 }
             }
         }
@@ -250,12 +259,18 @@ pub(crate) fn render_tile<const NC: usize>(job: &TileJob, out: TileOut) -> TileC
                 standard += stops.map(|&k| if k > 0 { u64::from(k) } else { list_len }).sum::<u64>();
             }
             let lanes = r * TILE + h * LANES..r * TILE + (h + 1) * LANES;
-            for (ch, plane) in seg.color.iter().enumerate() {
-                out.color[ch * TILE * TILE..][lanes.clone()].copy_from_slice(plane);
-            }
-            out.depth[lanes.clone()].copy_from_slice(&seg.depth);
             out.t_final[lanes.clone()].copy_from_slice(&seg.t);
             out.last[lanes].copy_from_slice(&seg.last);
+        }
+    }
+    for (r, row) in segs.iter().enumerate().take(job.rows) {
+        for x in 0..job.lanes {
+            let (seg, l) = (&row[x / LANES], x % LANES);
+            out.alpha[r][x] = 1.0 - seg.t[l];
+            out.depth[r][x] = seg.depth[l];
+            for (ch, (c, bg)) in out.color[r][x * NC..(x + 1) * NC].iter_mut().zip(background).enumerate() {
+                *c = seg.color[ch][l] + seg.t[l] * bg;
+            }
         }
     }
     TileCounts { segments: evaluations, standard }
@@ -276,7 +291,7 @@ fn composite_seg<const NC: usize>(
     for l in 0..LANES {
         let (sigma, _, alpha) = alpha_at(s, row, s.u - px[l]);
         // `&` rather than `&&`: no short-circuit branches in the lane loop.
-        let ok = (sigma >= 0.0) & (alpha >= ALPHA_MIN) & (seg.done[l] == 0);
+        let ok = (sigma >= 0.0) & (alpha >= ALPHA_MIN) & (seg.stop_at[l] == 0);
         let t_next = seg.t[l] * (1.0 - alpha);
         let stop = ok & (t_next <= T_MIN);
         let take = ok & !stop;
@@ -288,6 +303,5 @@ fn composite_seg<const NC: usize>(
         seg.t[l] = if take { t_next } else { seg.t[l] };
         seg.last[l] = if take { k1 } else { seg.last[l] };
         seg.stop_at[l] = if stop { k1 } else { seg.stop_at[l] };
-        seg.done[l] |= u32::from(stop);
     }
 }

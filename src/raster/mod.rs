@@ -59,6 +59,7 @@ impl Gaussians<'_> {
             log_scale: &self.log_scales[3 * i..3 * i + 3],
             quat: &self.quats[4 * i..4 * i + 4],
             opacity: self.opacities[i],
+            color: &self.colors[self.channels * i..self.channels * (i + 1)],
         }
     }
 
@@ -133,8 +134,9 @@ pub struct Forward {
 impl Forward {
     /// Pixel–Gaussian evaluations: (pixel, Gaussian) pairs whose alpha was computed, i.e. for every
     /// tile and every splat in its list until the tile stopped, the in-image pixels of the 8-pixel
-    /// row segments that intersect the splat's extent and still had a live pixel. (The backward pass
-    /// counts the same way, over segments with a pixel the splat was composited into or in front of.)
+    /// row segments that the splat's ellipse may reach (its tile plan) and that still had a live
+    /// pixel. (The backward pass counts the same way, over segments with a pixel the splat was
+    /// composited into or in front of.)
     /// This is fewer than the standard count, [`RasterState::forward_evaluations_standard`].
     pub fn evaluations(&self) -> u64 {
         self.state.forward_evaluations
@@ -165,7 +167,7 @@ fn check_views(viewmats: &[f32]) -> Result<usize> {
 }
 
 /// Where the tiles of a view are and what each composites.
-fn tile_jobs<'a>(cam: &Camera, view: &'a ViewState, colors: &'a [f32]) -> impl Iterator<Item = TileJob<'a>> {
+fn tile_jobs<'a>(cam: &Camera, view: &'a ViewState) -> impl Iterator<Item = TileJob<'a>> {
     let (w, h, tx) = (cam.width as usize, cam.height as usize, cam.tiles_x());
     (0..cam.num_tiles()).map(move |t| {
         let (x0, y0) = ((t % tx) * TILE, (t / tx) * TILE);
@@ -176,9 +178,23 @@ fn tile_jobs<'a>(cam: &Camera, view: &'a ViewState, colors: &'a [f32]) -> impl I
             rows: TILE.min(h - y0),
             ids: view.bins.tile(t),
             splats: &view.proj,
-            colors,
         }
     })
+}
+
+/// The pieces of a row-major (B, H, W, `per_px`) image that each tile covers (one per tile row), in
+/// job order (views, then tiles): disjoint mutable slices, so that tiles write their pixels in parallel.
+fn tile_rows<'a>(img: &'a mut [f32], cam: &Camera, per_px: usize) -> Vec<Vec<&'a mut [f32]>> {
+    let (w, h, tx, nt) = (cam.width as usize, cam.height as usize, cam.tiles_x(), cam.num_tiles());
+    let views = img.len() / (w * h * per_px);
+    let mut tiles: Vec<Vec<&mut [f32]>> = (0..views * nt).map(|_| Vec::with_capacity(TILE)).collect();
+    for (row, line) in img.chunks_mut(w * per_px).enumerate() {
+        let first = (row / h) * nt + (row % h / TILE) * tx;
+        for (t, piece) in line.chunks_mut(TILE * per_px).enumerate() {
+            tiles[first + t].push(piece);
+        }
+    }
+    tiles
 }
 
 /// Run `f` with the channel count as a compile-time constant (the per-pixel loops unroll over it).
@@ -217,52 +233,31 @@ pub fn forward(gs: &Gaussians, viewmats: &[f32], cam: &Camera, background: &[f32
             ViewState { proj, bins, t_final: Vec::new(), last: Vec::new() }
         })
         .collect();
-    // Tile-major colour and depth, converted to row-major below.
-    let mut color_t = vec![0.0f32; b * nt * AREA * nc];
-    let mut depth_t = vec![0.0f32; b * nt * AREA];
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let mut color = vec![0.0f32; b * h * w * nc];
+    let mut depth = vec![0.0f32; b * h * w];
+    let mut alpha = vec![0.0f32; b * h * w];
     let mut t_final: Vec<Vec<f32>> = (0..b).map(|_| vec![0.0; nt * AREA]).collect();
     let mut last: Vec<Vec<u32>> = (0..b).map(|_| vec![0; nt * AREA]).collect();
-    let jobs: Vec<TileJob> = views.iter().flat_map(|v| tile_jobs(cam, v, gs.colors)).collect();
-    let outs: Vec<TileOut> = color_t
-        .chunks_mut(AREA * nc)
-        .zip(depth_t.chunks_mut(AREA))
+    let jobs: Vec<TileJob> = views.iter().flat_map(|v| tile_jobs(cam, v)).collect();
+    let outs: Vec<TileOut> = tile_rows(&mut color, cam, nc)
+        .into_iter()
+        .zip(tile_rows(&mut depth, cam, 1))
+        .zip(tile_rows(&mut alpha, cam, 1))
         .zip(t_final.iter_mut().flat_map(|v| v.chunks_mut(AREA)))
         .zip(last.iter_mut().flat_map(|v| v.chunks_mut(AREA)))
-        .map(|(((color, depth), t_final), last)| TileOut { color, depth, t_final, last })
+        .map(|((((color, depth), alpha), t_final), last)| TileOut { color, depth, alpha, t_final, last })
         .collect();
     let counts = jobs
         .par_iter()
         .zip(outs.into_par_iter())
-        .map(|(job, out)| with_channels!(nc, render_tile, job, out))
+        .map(|(job, out)| with_channels!(nc, render_tile, job, out, background))
         .reduce(TileCounts::default, |a, b| a + b);
     let backward_standard = last.iter().flatten().map(|&k| u64::from(k)).sum();
     for ((v, t), l) in views.iter_mut().zip(t_final).zip(last) {
         v.t_final = t;
         v.last = l;
     }
-
-    let (w, h, tx) = (cam.width as usize, cam.height as usize, cam.tiles_x());
-    let mut color = vec![0.0f32; b * h * w * nc];
-    let mut depth = vec![0.0f32; b * h * w];
-    let mut alpha = vec![0.0f32; b * h * w];
-    color
-        .par_chunks_mut(w * nc)
-        .zip(depth.par_chunks_mut(w))
-        .zip(alpha.par_chunks_mut(w))
-        .enumerate()
-        .for_each(|(row, ((c, d), a))| {
-            let (vi, y) = (row / h, row % h);
-            for x in 0..w {
-                let tile = vi * nt + (y / TILE) * tx + x / TILE;
-                let lane = (y % TILE) * TILE + x % TILE;
-                let tf = views[vi].t_final[(tile - vi * nt) * AREA + lane];
-                a[x] = 1.0 - tf;
-                d[x] = depth_t[tile * AREA + lane];
-                for ch in 0..nc {
-                    c[x * nc + ch] = color_t[(tile * nc + ch) * AREA + lane] + tf * background[ch];
-                }
-            }
-        });
     let radii = views.iter().flat_map(|v| v.proj.iter().map(|p| p.radius)).collect();
     let state = RasterState {
         cam: *cam,
@@ -318,7 +313,7 @@ pub fn backward(
     let mut tasks = Vec::new();
     for (vi, (v, pg)) in state.views.iter().zip(pair_grads.iter_mut()).enumerate() {
         let outs = split_by_offsets(pg, &v.bins.offsets);
-        for ((t, job), out) in tile_jobs(cam, v, gs.colors).enumerate().zip(outs) {
+        for ((t, job), out) in tile_jobs(cam, v).enumerate().zip(outs) {
             let input = TileGradIn {
                 t_final: &v.t_final[t * AREA..(t + 1) * AREA],
                 last: &v.last[t * AREA..(t + 1) * AREA],

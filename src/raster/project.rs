@@ -30,19 +30,19 @@ pub(crate) struct Splat {
     pub z: f32,
     /// `ln(255·o)` plus a small margin: pixels with `σ > tau` cannot reach alpha ≥ 1/255.
     pub tau: f32,
-    /// Pixel rows and columns that can reach alpha ≥ 1/255 (inclusive, conservative by up to one).
-    pub row_lo: i32,
-    pub row_hi: i32,
-    pub col_lo: i32,
-    pub col_hi: i32,
+    /// `1/a`: locates the minimum of `σ` along a pixel row.
+    pub inv_a: f32,
 }
 
 /// One Gaussian projected into one view; a culled one has radius 0 and an empty rectangle.
-/// Exactly one cache line: the tile loops read these in depth order, i.e. at random addresses.
+/// Exactly one cache line holding all the tile loops read (they read these in depth order, i.e. at
+/// random addresses: one miss per splat, not two).
 #[derive(Clone, Copy, Debug, Default)]
 #[repr(C, align(64))]
 pub(crate) struct Projected {
     pub splat: Splat,
+    /// The colour (C channels; the rest zero).
+    pub color: [f32; 3],
     pub rect: Rect,
     pub radius: i32,
 }
@@ -69,6 +69,7 @@ pub(crate) struct Params<'a> {
     pub log_scale: &'a [f32],
     pub quat: &'a [f32],
     pub opacity: f32,
+    pub color: &'a [f32],
 }
 
 /// Normalised quaternion `(w, x, y, z)` and `1/|q|`; a zero (or non-finite) quaternion is the identity
@@ -109,14 +110,17 @@ struct Geometry {
     cov2d: Matrix2<f32>,
 }
 
-fn geometry(g: &Params, view: &View, cam: &Camera, lims: &[f32; 4]) -> Geometry {
-    let (qhat, inv_qnorm) = normalise(g.quat);
-    let rq = rotation(qhat);
-    let scale = Vector3::new(g.log_scale[0].exp(), g.log_scale[1].exp(), g.log_scale[2].exp());
-    let m = rq * Matrix3::from_diagonal(&scale);
-    let cov_world = m * m.transpose();
-    let p = view.r * Vector3::new(g.mean[0], g.mean[1], g.mean[2]) + view.t;
-    let cov_cam = view.r * cov_world * view.r.transpose();
+/// The projection Jacobian at camera point `p`, with the field-of-view clamp.
+struct Jacobian {
+    jac: Matrix2x3<f32>,
+    /// The (possibly clamped) `x'`, `y'` and whether each was clamped.
+    tx: f32,
+    ty: f32,
+    clamped_x: bool,
+    clamped_y: bool,
+}
+
+fn jacobian(p: &Vector3<f32>, cam: &Camera, lims: &[f32; 4]) -> Jacobian {
     let z = p.z;
     let (xz, yz) = (p.x / z, p.y / z);
     let cxz = xz.clamp(-lims[0], lims[1]);
@@ -124,42 +128,56 @@ fn geometry(g: &Params, view: &View, cam: &Camera, lims: &[f32; 4]) -> Geometry 
     let (tx, ty) = (cxz * z, cyz * z);
     let jac =
         Matrix2x3::new(cam.fx / z, 0.0, -cam.fx * tx / (z * z), 0.0, cam.fy / z, -cam.fy * ty / (z * z));
+    Jacobian { jac, tx, ty, clamped_x: cxz != xz, clamped_y: cyz != yz }
+}
+
+fn camera_point(g: &Params, view: &View) -> Vector3<f32> {
+    view.r * Vector3::new(g.mean[0], g.mean[1], g.mean[2]) + view.t
+}
+
+fn scales(g: &Params) -> Vector3<f32> {
+    Vector3::new(g.log_scale[0].exp(), g.log_scale[1].exp(), g.log_scale[2].exp())
+}
+
+fn geometry(g: &Params, view: &View, cam: &Camera, lims: &[f32; 4]) -> Geometry {
+    let (qhat, inv_qnorm) = normalise(g.quat);
+    let rq = rotation(qhat);
+    let scale = scales(g);
+    let m = rq * Matrix3::from_diagonal(&scale);
+    let cov_world = m * m.transpose();
+    let p = camera_point(g, view);
+    let cov_cam = view.r * cov_world * view.r.transpose();
+    let Jacobian { jac, tx, ty, clamped_x, clamped_y } = jacobian(&p, cam, lims);
     let cov2d = jac * cov_cam * jac.transpose() + Matrix2::identity() * DILATION;
-    Geometry {
-        qhat,
-        inv_qnorm,
-        rq,
-        scale,
-        cov_world,
-        p,
-        cov_cam,
-        tx,
-        ty,
-        clamped_x: cxz != xz,
-        clamped_y: cyz != yz,
-        jac,
-        cov2d,
-    }
+    Geometry { qhat, inv_qnorm, rq, scale, cov_world, p, cov_cam, tx, ty, clamped_x, clamped_y, jac, cov2d }
 }
 
 /// Project one Gaussian into one view: the splat, its tile rectangle and its screen radius
 /// (`max(r_x, r_y)`), or `None` when culled.
 pub(crate) fn project(g: &Params, view: &View, cam: &Camera, lims: &[f32; 4]) -> Option<Projected> {
-    let p = view.r * Vector3::new(g.mean[0], g.mean[1], g.mean[2]) + view.t;
+    let p = camera_point(g, view);
     // Positive tests, so that NaN depths or opacities are culled too.
     let in_range = p.z >= cam.near && p.z <= cam.far && g.opacity >= ALPHA_MIN;
     if !in_range {
         return None;
     }
-    let geo = geometry(g, view, cam, lims);
-    let s = geo.cov2d;
+    // Σ2D = (J·W·R·S)(J·W·R·S)ᵀ + 0.3·I: one 2×3 factor instead of three 3×3 covariance products
+    // (the backward pass, which needs those intermediates, uses `geometry`).
+    let (qhat, _) = normalise(g.quat);
+    let mut wrs = view.r * rotation(qhat);
+    for (mut col, s) in wrs.column_iter_mut().zip(scales(g).iter()) {
+        col *= *s;
+    }
+    let factor = jacobian(&p, cam, lims).jac * wrs;
+    let s = factor * factor.transpose() + Matrix2::identity() * DILATION;
     let det = s[(0, 0)] * s[(1, 1)] - s[(0, 1)] * s[(1, 0)];
     let invertible = det > 0.0;
     if !invertible {
         return None;
     }
     let inv_det = 1.0 / det;
-    let extent = MAX_EXTENT.min((2.0 * (g.opacity / ALPHA_MIN).ln()).sqrt());
+    let ln_reach = (g.opacity / ALPHA_MIN).ln();
+    let extent = MAX_EXTENT.min((2.0 * ln_reach).sqrt());
     let rx = (extent * s[(0, 0)].sqrt()).ceil();
     let ry = (extent * s[(1, 1)].sqrt()).ceil();
     let visible = rx > 0.0 || ry > 0.0;
@@ -192,13 +210,11 @@ pub(crate) fn project(g: &Params, view: &View, cam: &Camera, lims: &[f32; 4]) ->
         c: s[(0, 0)] * inv_det,
         opacity: g.opacity,
         z: p.z,
-        tau: (g.opacity / ALPHA_MIN).ln() + TAU_MARGIN,
-        row_lo: (v - ry - 0.5).floor().max(-1.0) as i32,
-        row_hi: (v + ry - 0.5).ceil().min(h) as i32,
-        col_lo: (u - rx - 0.5).floor().max(-1.0) as i32,
-        col_hi: (u + rx - 0.5).ceil().min(w) as i32,
+        tau: ln_reach + TAU_MARGIN,
+        inv_a: det / s[(1, 1)],
     };
-    Some(Projected { splat, rect, radius: rx.max(ry) as i32 })
+    let color = std::array::from_fn(|ch| g.color.get(ch).copied().unwrap_or(0.0));
+    Some(Projected { splat, color, rect, radius: rx.max(ry) as i32 })
 }
 
 /// Upstream gradient of one Gaussian in one view, summed over its pixels.
@@ -351,8 +367,13 @@ mod tests {
 
     #[test]
     fn zero_quaternion_is_identity_without_nan() {
-        let params =
-            Params { mean: &[0.1, 0.0, 2.0], log_scale: &[-2.0, -1.5, -2.5], quat: &[0.0; 4], opacity: 0.5 };
+        let params = Params {
+            mean: &[0.1, 0.0, 2.0],
+            log_scale: &[-2.0, -1.5, -2.5],
+            quat: &[0.0; 4],
+            opacity: 0.5,
+            color: &[1.0],
+        };
         let c = cam();
         let p = project(&params, &identity(), &c, &c.fov_limits()).unwrap();
         assert!(p.radius > 0 && p.splat.a.is_finite() && p.splat.b == 0.0);
@@ -367,7 +388,13 @@ mod tests {
         let c = cam();
         let lims = c.fov_limits();
         let at = |mean: &'static [f32]| {
-            let p = Params { mean, log_scale: &[-3.0; 3], quat: &[1.0, 0.0, 0.0, 0.0], opacity: 0.9 };
+            let p = Params {
+                mean,
+                log_scale: &[-3.0; 3],
+                quat: &[1.0, 0.0, 0.0, 0.0],
+                opacity: 0.9,
+                color: &[1.0],
+            };
             project(&p, &identity(), &c, &lims).is_some()
         };
         assert!(!at(&[0.0, 0.0, -1.0]));
