@@ -1,6 +1,6 @@
 """Map quality measured apart from pose estimation (a diagnostic benchmark, not a test).
 
-    PYTHONPATH=python python benches/slam_oracle.py [--seq synthetic/orbit_ambient] [--track 6] [--set k=v ...]
+    PYTHONPATH=python python benches/slam_oracle.py [--seq synthetic/orbit_ambient] [--track 6] [--set K=V]
 
 1. Initialization with the ground-truth knots, frozen (translations scaled by ``init_depth`` / the
    distance to the first frame's range sample, so the map sits where a real run would put it): the map

@@ -142,6 +142,24 @@ def test_constant_velocity_on_uniform_motion():
     assert torch.allclose(constant_velocity(knots[2], knots[3], 0.5), knots[3] @ half, atol=1e-12)
 
 
+def test_acceleration_penalty_is_zero_for_constant_velocity_only():
+    step = se3_exp(torch.tensor([0.1, -0.05, 0.2, 0.02, -0.03, 0.05], dtype=D))
+    knots = [se3_exp(rand_twists(1, 0.7, seed=3))[0]]
+    for _ in range(4):
+        knots.append(knots[-1] @ step)
+    t_us = np.arange(5) * 40_000
+    assert float(Trajectory(t_us, torch.stack(knots)).acceleration_penalty(2.0)) < 1e-18
+    # One knot pushed by a rotation ε: the velocity changes by ±ε/dt around it, so the penalty is the
+    # mean over the 3 velocity differences of (ε/dt²)²·(1 + 4 + 1)/3 (the middle one doubles).
+    eps = 1e-3
+    bent = list(knots)
+    bent[2] = bent[2] @ se3_exp(torch.tensor([0, 0, 0, eps, 0, 0], dtype=D))
+    pen = float(Trajectory(t_us, torch.stack(bent)).acceleration_penalty(2.0))
+    dt = 0.04
+    assert pen == pytest.approx((eps / dt**2) ** 2 * 6 / 3, rel=2e-2)
+    assert float(Trajectory(t_us[:2], torch.stack(knots[:2])).acceleration_penalty(2.0)) == 0.0
+
+
 def make_traj(method: str = "geodesic") -> tuple[Trajectory, torch.Tensor]:
     t_us = np.array([0, 1000, 3000, 4000], dtype=np.int64)
     T = se3_exp(rand_twists(4, 0.5, seed=11))

@@ -46,6 +46,7 @@ class TrajectoryConfig:
     interpolation: Literal["geodesic", "lerp"]
     pose_lr: float
     init_pose_noise: float
+    smoothness: float
 
 
 @dataclass(frozen=True)

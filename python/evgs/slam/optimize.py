@@ -95,6 +95,9 @@ def loss_step(state: SlamState, spec: StageSpec, win: Windows, factor: int) -> S
     total = terms.total
     if spec.anchored:
         total = total + state.anchor.penalty(out.color, out.alpha)
+    w = cfg.trajectory.smoothness
+    if w > 0 and len(spec.trainable_knots):
+        total = total + w * state.traj.acceleration_penalty(cfg.gaussians.bounding_size).float()
     return StepResult(out, terms, total, camera)
 
 

@@ -144,6 +144,19 @@ class Trajectory(torch.nn.Module):
         self.trainable = torch.cat([self.trainable, torch.tensor([True])])
         self.delta = torch.nn.Parameter(torch.zeros(len(self.t_us), 6, dtype=torch.float64))
 
+    def acceleration_penalty(self, scene_scale: float) -> Tensor:
+        """Mean squared change of the body-frame velocity ``Log(T_{k-1}⁻¹ T_k)`` between consecutive
+        segments (translation in units of ``scene_scale``), per unit of time²: zero for constant
+        velocity, the motion a spacecraft in free flight keeps between frames."""
+        if len(self) < 3:
+            return torch.zeros((), dtype=torch.float64)
+        knots = self.knots()
+        dt = (self.t_us[1:] - self.t_us[:-1]).to(torch.float64) * 1e-6
+        vel = se3_log(se3_inverse(knots[:-1]) @ knots[1:]) / dt[:, None]
+        vel = torch.cat([vel[:, :3] / scene_scale, vel[:, 3:]], 1)
+        mid = 0.5 * (dt[1:] + dt[:-1])
+        return (((vel[1:] - vel[:-1]) / mid[:, None]) ** 2).sum(1).mean()
+
     def poses_numpy(self) -> tuple[np.ndarray, np.ndarray]:
         """``(t_us (K,), T_wc (K, 4, 4))`` of the current knots, for TUM export."""
         with torch.no_grad():
