@@ -11,7 +11,7 @@ use std::io::Read;
 
 use rayon::prelude::*;
 
-use super::raw_header::DecodeStats;
+use super::raw_header::{check_encodable, DecodeStats};
 use super::{ColumnsMut, Decoder, Events, EventsView};
 use crate::error::{Error, Result};
 
@@ -575,46 +575,152 @@ impl Decoder for Aedat4Decoder {
 
 // ---- Encoder ----
 
-/// Byte offset of `dataTablePosition` in the file written by [`encode_aedat4`] (patched at the end).
-const DATA_TABLE_FIELD: usize = 18 + 32;
+/// Byte offset of the `dataTablePosition` field in the header [`Aedat4Encoder`] writes: the writer
+/// patches it once the table's position is known.
+pub const DATA_TABLE_FIELD: u64 = 18 + 32;
 
-/// Encode events as a complete AEDAT 4.0 file: one event stream (ID 0), `events_per_packet` events per
-/// packet, each packet compressed as one LZ4 frame (linked blocks, as DV writes) or one ZSTD frame
-/// (with its content size, which DV requires), then a FileDataTable. Panics if `events_per_packet`
-/// is 0 or a coordinate exceeds i16.
+/// Streaming AEDAT 4.0 encoder: one event stream (ID 0), `events_per_packet` events per packet, each
+/// compressed (in parallel) as one LZ4 frame (linked blocks, as DV writes) or one ZSTD frame (with
+/// its content size, which DV requires), then a FileDataTable. The file is [`Aedat4Encoder::header`],
+/// the bytes of every [`Aedat4Encoder::encode`], those of [`Aedat4Encoder::finish`], and the table
+/// position it returns written at [`DATA_TABLE_FIELD`].
+#[derive(Debug, Clone)]
+pub struct Aedat4Encoder {
+    path: String,
+    compression: Aedat4Compression,
+    events_per_packet: usize,
+    xlim: u32,
+    ylim: u32,
+    header: Vec<u8>,
+    /// Events of a partial packet, carried into the next batch.
+    carry: Events,
+    table: Vec<TableEntry>,
+    /// Bytes produced so far (header included): the file offset of the next byte.
+    written: u64,
+    last_t: Option<i64>,
+    seen: u64,
+}
+
+impl Aedat4Encoder {
+    /// `path` names the output in errors; coordinates must fit the sensor (`width`/`height`, 0 =
+    /// unknown) and i16. Errors if `events_per_packet` is 0.
+    pub fn new(
+        path: &str,
+        width: u32,
+        height: u32,
+        compression: Aedat4Compression,
+        events_per_packet: usize,
+    ) -> Result<Self> {
+        if events_per_packet == 0 {
+            return Err(Error::Invalid(format!("{path}: AEDAT 4 events_per_packet must be positive")));
+        }
+        let io = io_header(compression, &info_xml(width, height, compression));
+        let mut header = MAGIC.to_vec();
+        header.extend_from_slice(&(io.len() as u32).to_le_bytes());
+        header.extend_from_slice(&io);
+        let lim = |n: u32| if n == 0 { 1 << 15 } else { n.min(1 << 15) };
+        Ok(Aedat4Encoder {
+            path: path.into(),
+            compression,
+            events_per_packet,
+            xlim: lim(width),
+            ylim: lim(height),
+            written: header.len() as u64,
+            header,
+            carry: Events::default(),
+            table: Vec::new(),
+            last_t: None,
+            seen: 0,
+        })
+    }
+
+    /// The magic and IOHeader, with `dataTablePosition` −1 until patched.
+    pub fn header(&self) -> &[u8] {
+        &self.header
+    }
+
+    /// Append the packets completed by the stream's next events to `out` (a partial packet waits for
+    /// the next batch). Unsorted times and coordinates that do not fit are errors naming the event's
+    /// index in the stream (nothing of the batch is written then).
+    pub fn encode(&mut self, ev: EventsView<'_>, out: &mut Vec<u8>) -> Result<()> {
+        check_encodable(&self.path, "AEDAT 4", ev, self.last_t, self.seen, i64::MIN, self.xlim, self.ylim)?;
+        self.last_t = ev.t.last().copied().or(self.last_t);
+        self.seen += ev.len() as u64;
+        // Packets are cut from the carried events followed by this batch.
+        let mut joined = std::mem::take(&mut self.carry);
+        let all = if joined.is_empty() {
+            ev
+        } else {
+            extend_from_view(&mut joined, ev);
+            joined.view()
+        };
+        let full = all.len() / self.events_per_packet * self.events_per_packet;
+        self.write_packets(all, full, out);
+        extend_from_view(&mut self.carry, slice_view(all, full, all.len()));
+        Ok(())
+    }
+
+    /// Append the last partial packet and the FileDataTable to `out`; returns the table's file
+    /// offset, to be written at [`DATA_TABLE_FIELD`].
+    pub fn finish(&mut self, out: &mut Vec<u8>) -> u64 {
+        let carry = std::mem::take(&mut self.carry);
+        self.write_packets(carry.view(), carry.len(), out);
+        let position = self.written;
+        let table = compress(&data_table(&self.table), self.compression);
+        self.written += table.len() as u64;
+        out.extend_from_slice(&table);
+        position
+    }
+
+    /// Compress events `0..n` of `ev` as packets (in parallel) and append them to `out`.
+    fn write_packets(&mut self, ev: EventsView<'_>, n: usize, out: &mut Vec<u8>) {
+        let per = self.events_per_packet;
+        let starts: Vec<usize> = (0..n).step_by(per).collect();
+        let payloads: Vec<Vec<u8>> = starts
+            .par_iter()
+            .map(|&s| compress(&event_packet(ev, s, (s + per).min(n)), self.compression))
+            .collect();
+        for (&s, payload) in starts.iter().zip(&payloads) {
+            let e = (s + per).min(n);
+            self.table.push(TableEntry {
+                offset: self.written + 8,
+                size: payload.len(),
+                count: e - s,
+                t0: ev.t[s],
+                t1: ev.t[e - 1],
+            });
+            out.extend_from_slice(&0i32.to_le_bytes());
+            out.extend_from_slice(&(payload.len() as i32).to_le_bytes());
+            out.extend_from_slice(payload);
+            self.written += 8 + payload.len() as u64;
+        }
+    }
+}
+
+fn slice_view<'a>(ev: EventsView<'a>, from: usize, to: usize) -> EventsView<'a> {
+    EventsView { t: &ev.t[from..to], x: &ev.x[from..to], y: &ev.y[from..to], p: &ev.p[from..to], ..ev }
+}
+
+fn extend_from_view(e: &mut Events, v: EventsView<'_>) {
+    e.t.extend_from_slice(v.t);
+    e.x.extend_from_slice(v.x);
+    e.y.extend_from_slice(v.y);
+    e.p.extend_from_slice(v.p);
+}
+
+/// A complete AEDAT 4.0 file for the events (see [`Aedat4Encoder`]).
 pub fn encode_aedat4(
     ev: EventsView<'_>,
     compression: Aedat4Compression,
     events_per_packet: usize,
-) -> Vec<u8> {
-    assert!(events_per_packet > 0, "encode_aedat4: events_per_packet must be positive");
-    let header = io_header(compression, &info_xml(ev.width, ev.height, compression));
-    let mut out = MAGIC.to_vec();
-    out.extend_from_slice(&(header.len() as u32).to_le_bytes());
-    out.extend_from_slice(&header);
-    let starts: Vec<usize> = (0..ev.len()).step_by(events_per_packet).collect();
-    let payloads: Vec<Vec<u8>> = starts
-        .par_iter()
-        .map(|&s| compress(&event_packet(ev, s, (s + events_per_packet).min(ev.len())), compression))
-        .collect();
-    let mut table = Vec::with_capacity(starts.len());
-    for (&s, payload) in starts.iter().zip(&payloads) {
-        let e = (s + events_per_packet).min(ev.len());
-        table.push(TableEntry {
-            offset: out.len() + 8,
-            size: payload.len(),
-            count: e - s,
-            t0: ev.t[s],
-            t1: ev.t[e - 1],
-        });
-        out.extend_from_slice(&0i32.to_le_bytes());
-        out.extend_from_slice(&(payload.len() as i32).to_le_bytes());
-        out.extend_from_slice(payload);
-    }
-    let position = out.len() as i64;
-    out[DATA_TABLE_FIELD..DATA_TABLE_FIELD + 8].copy_from_slice(&position.to_le_bytes());
-    out.extend_from_slice(&compress(&data_table(&table), compression));
-    out
+) -> Result<Vec<u8>> {
+    let mut enc = Aedat4Encoder::new("memory", ev.width, ev.height, compression, events_per_packet)?;
+    let mut out = enc.header().to_vec();
+    enc.encode(ev, &mut out)?;
+    let position = enc.finish(&mut out);
+    let field = DATA_TABLE_FIELD as usize;
+    out[field..field + 8].copy_from_slice(&(position as i64).to_le_bytes());
+    Ok(out)
 }
 
 fn info_xml(width: u32, height: u32, compression: Aedat4Compression) -> String {
@@ -684,8 +790,8 @@ fn event_packet(ev: EventsView<'_>, s: usize, e: usize) -> Vec<u8> {
     b.extend_from_slice(&4u32.to_le_bytes());
     b.extend_from_slice(&(n as u32).to_le_bytes());
     for i in s..e {
-        let (x, y) = (i16::try_from(ev.x[i]), i16::try_from(ev.y[i]));
-        let (Ok(x), Ok(y)) = (x, y) else { panic!("encode_aedat4: event {i}: coordinates exceed i16") };
+        // Checked by the encoder: coordinates are below 2^15.
+        let (x, y) = (ev.x[i] as i16, ev.y[i] as i16);
         b.extend_from_slice(&ev.t[i].to_le_bytes());
         b.extend_from_slice(&x.to_le_bytes());
         b.extend_from_slice(&y.to_le_bytes());
@@ -695,8 +801,9 @@ fn event_packet(ev: EventsView<'_>, s: usize, e: usize) -> Vec<u8> {
 }
 
 /// One FileDataTable row: where a packet's payload is and what it holds.
+#[derive(Debug, Clone)]
 struct TableEntry {
-    offset: usize,
+    offset: u64,
     size: usize,
     count: usize,
     t0: i64,
@@ -1004,7 +1111,7 @@ mod tests {
     fn round_trips_with_data_table() {
         let ev = feed::random_events(10_000, 3, 1_700_000_000_000_000, 5, 346, 260);
         for compression in [Aedat4Compression::None, Aedat4Compression::Lz4, Aedat4Compression::Zstd] {
-            let file = encode_aedat4(ev.view(), compression, 777);
+            let file = encode_aedat4(ev.view(), compression, 777).unwrap();
             let h = parse_aedat4_header(&file, "f.aedat4").unwrap();
             assert_eq!((h.compression, h.width, h.height, h.event_stream_id), (compression, 346, 260, 0));
             for piece in [file.len(), 4096, 7] {
@@ -1040,7 +1147,7 @@ mod tests {
     #[test]
     fn result_is_independent_of_thread_count() {
         let ev = feed::random_events(20_000, 5, 0, 3, 128, 128);
-        let file = encode_aedat4(ev.view(), Aedat4Compression::Lz4, 500);
+        let file = encode_aedat4(ev.view(), Aedat4Compression::Lz4, 500).unwrap();
         let decode_with = |threads| {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
             pool.install(|| decode(&file, file.len()).unwrap().0)

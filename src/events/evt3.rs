@@ -15,7 +15,7 @@
 
 use rayon::prelude::*;
 
-use super::raw_header::{write_raw_header, DecodeStats, RawEncoding, MAX_COORD};
+use super::raw_header::{check_encodable, write_raw_header, DecodeStats, RawEncoding, MAX_COORD};
 use super::{ColumnsMut, Decoder, Events, EventsView};
 use crate::error::{Error, Result};
 
@@ -515,81 +515,115 @@ impl Decoder for Evt3Decoder {
     }
 }
 
-/// Encode sorted, non-negative-time events as a complete EVT 3.0 `.raw` file (header + payload).
+/// Streaming EVT 3.0 encoder: the payload of a `.raw` file, batch by batch after [`write_raw_header`].
 ///
 /// Consecutive events with the same time, row and polarity and increasing x (gaps ≤ 12) become one
 /// VECT_BASE_X followed by VECT_12, VECT_12, VECT_8 groups (repeated without a new base for long runs);
-/// single events become ADDR_X. When the 24-bit counter loops, TIME_HIGH words at the last base before
-/// the loop and at the loop are inserted so the decoder sees the fall. Times decode absolutely only
-/// within the first 2^24 µs period of the first event (the format has no higher bits). Panics on
-/// unsorted or negative times or coordinates above 2047.
-pub fn encode_evt3(ev: EventsView<'_>) -> Vec<u8> {
-    let mut out = write_raw_header(RawEncoding::Evt3, ev.width, ev.height);
-    out.reserve(ev.len() * 2 + 64);
-    let word = |out: &mut Vec<u8>, kind: u16, v: u32| {
-        out.extend_from_slice(&((kind << 12) | v as u16).to_le_bytes())
-    };
-    let (mut high, mut time, mut row): (Option<i64>, Option<i64>, Option<u16>) = (None, None, None);
-    let n = ev.len();
-    let mut i = 0;
-    while i < n {
-        let (t, x, y, on) = (ev.t[i], ev.x[i], ev.y[i], ev.p[i] > 0);
-        assert!(
-            t >= 0 && time.is_none_or(|c| c <= t),
-            "encode_evt3: event {i}: times must be sorted and >= 0"
-        );
-        assert!(x < 2048 && y < 2048, "encode_evt3: event {i}: ({x}, {y}) does not fit 11 bits");
-        let h = t & !0xFFF;
-        if high != Some(h) {
-            if let Some(previous) = high {
-                for lp in (previous / LOOP + 1..=h / LOOP).map(|k| k * LOOP) {
-                    word(&mut out, TIME_HIGH, (((lp - 4096).max(previous) >> 12) & 0xFFF) as u32);
-                    word(&mut out, TIME_HIGH, 0);
-                }
-            }
-            word(&mut out, TIME_HIGH, ((h >> 12) & 0xFFF) as u32);
-            (high, time) = (Some(h), None);
+/// single events become ADDR_X. Runs do not cross batches (the file stays valid, a word or two larger).
+/// When the 24-bit counter loops, TIME_HIGH words at the last base before the loop and at the loop are
+/// inserted so the decoder sees the fall. Times decode absolutely only within the first 2^24 µs period
+/// of the first event (the format has no higher bits).
+#[derive(Debug, Clone)]
+pub struct Evt3Encoder {
+    path: String,
+    xlim: u32,
+    ylim: u32,
+    /// The registers written so far: TIME_HIGH base, full time, row.
+    high: Option<i64>,
+    time: Option<i64>,
+    row: Option<u16>,
+    seen: u64,
+}
+
+impl Evt3Encoder {
+    /// `path` names the output in errors; coordinates must fit the sensor (`width`/`height`, 0 =
+    /// unknown) and the 11-bit address fields.
+    pub fn new(path: &str, width: u32, height: u32) -> Self {
+        let lim = |n: u32| if n == 0 { MAX_COORD } else { n.min(MAX_COORD) };
+        Evt3Encoder {
+            path: path.into(),
+            xlim: lim(width),
+            ylim: lim(height),
+            high: None,
+            time: None,
+            row: None,
+            seen: 0,
         }
-        if time != Some(t) {
-            word(&mut out, TIME_LOW, (t & 0xFFF) as u32);
-            time = Some(t);
-        }
-        if row != Some(y) {
-            word(&mut out, ADDR_Y, u32::from(y));
-            row = Some(y);
-        }
-        let pol = u32::from(on) << 11;
-        let mut j = i + 1;
-        while j < n
-            && ev.t[j] == t
-            && ev.y[j] == y
-            && (ev.p[j] > 0) == on
-            && ev.x[j] > ev.x[j - 1]
-            && ev.x[j] - ev.x[j - 1] <= 12
-        {
-            j += 1;
-        }
-        if j == i + 1 {
-            word(&mut out, ADDR_X, pol | u32::from(x));
-        } else {
-            word(&mut out, VECT_BASE_X, pol | u32::from(x));
-            let mut base = u32::from(x);
-            for (k, group) in [12u32, 12, 8].into_iter().cycle().enumerate() {
-                let mut mask = 0;
-                while i < j && u32::from(ev.x[i]) < base + group {
-                    mask |= 1 << (u32::from(ev.x[i]) - base);
-                    i += 1;
-                }
-                word(&mut out, if k % 3 == 2 { VECT_8 } else { VECT_12 }, mask);
-                base += group;
-                if i == j {
-                    break;
-                }
-            }
-        }
-        i = j;
     }
-    out
+
+    /// Append the words of the stream's next events to `out`. Unsorted or negative times and
+    /// coordinates that do not fit are errors naming the event's index in the stream (nothing of
+    /// the batch is written then).
+    pub fn encode(&mut self, ev: EventsView<'_>, out: &mut Vec<u8>) -> Result<()> {
+        check_encodable(&self.path, "EVT 3.0", ev, self.time, self.seen, 0, self.xlim, self.ylim)?;
+        out.reserve(ev.len() * 2 + 64);
+        let word = |out: &mut Vec<u8>, kind: u16, v: u32| {
+            out.extend_from_slice(&((kind << 12) | v as u16).to_le_bytes())
+        };
+        let n = ev.len();
+        let mut i = 0;
+        while i < n {
+            let (t, x, y, on) = (ev.t[i], ev.x[i], ev.y[i], ev.p[i] > 0);
+            let h = t & !0xFFF;
+            if self.high != Some(h) {
+                if let Some(previous) = self.high {
+                    for lp in (previous / LOOP + 1..=h / LOOP).map(|k| k * LOOP) {
+                        word(out, TIME_HIGH, (((lp - 4096).max(previous) >> 12) & 0xFFF) as u32);
+                        word(out, TIME_HIGH, 0);
+                    }
+                }
+                word(out, TIME_HIGH, ((h >> 12) & 0xFFF) as u32);
+                (self.high, self.time) = (Some(h), None);
+            }
+            if self.time != Some(t) {
+                word(out, TIME_LOW, (t & 0xFFF) as u32);
+                self.time = Some(t);
+            }
+            if self.row != Some(y) {
+                word(out, ADDR_Y, u32::from(y));
+                self.row = Some(y);
+            }
+            let pol = u32::from(on) << 11;
+            let mut j = i + 1;
+            while j < n
+                && ev.t[j] == t
+                && ev.y[j] == y
+                && (ev.p[j] > 0) == on
+                && ev.x[j] > ev.x[j - 1]
+                && ev.x[j] - ev.x[j - 1] <= 12
+            {
+                j += 1;
+            }
+            if j == i + 1 {
+                word(out, ADDR_X, pol | u32::from(x));
+            } else {
+                word(out, VECT_BASE_X, pol | u32::from(x));
+                let mut base = u32::from(x);
+                for (k, group) in [12u32, 12, 8].into_iter().cycle().enumerate() {
+                    let mut mask = 0;
+                    while i < j && u32::from(ev.x[i]) < base + group {
+                        mask |= 1 << (u32::from(ev.x[i]) - base);
+                        i += 1;
+                    }
+                    word(out, if k % 3 == 2 { VECT_8 } else { VECT_12 }, mask);
+                    base += group;
+                    if i == j {
+                        break;
+                    }
+                }
+            }
+            i = j;
+        }
+        self.seen += n as u64;
+        Ok(())
+    }
+}
+
+/// A complete EVT 3.0 `.raw` file (header + payload) for sorted, non-negative-time events.
+pub fn encode_evt3(ev: EventsView<'_>) -> Result<Vec<u8>> {
+    let mut out = write_raw_header(RawEncoding::Evt3, ev.width, ev.height);
+    Evt3Encoder::new("memory", ev.width, ev.height).encode(ev, &mut out)?;
+    Ok(out)
 }
 
 #[cfg(test)]
@@ -736,7 +770,7 @@ mod tests {
         for x in [3, 5, 17, 26, 35, 38, 47, 60] {
             ev.push(4096 * 3 + 1, x, 2, 1);
         }
-        let file = encode_evt3(ev.view());
+        let file = encode_evt3(ev.view()).unwrap();
         let h = parse_raw_header(&file, "f.raw").unwrap();
         let payload: Vec<u16> =
             file[h.data_offset..].chunks(2).map(|c| u16::from_le_bytes([c[0], c[1]])).collect();
@@ -751,7 +785,7 @@ mod tests {
     #[test]
     fn round_trip_across_loops_whole_and_in_pieces() {
         let ev = bursts(20_000, 11);
-        let file = encode_evt3(ev.view());
+        let file = encode_evt3(ev.view()).unwrap();
         let h = parse_raw_header(&file, "f.raw").unwrap();
         assert_eq!((h.encoding, h.width, h.height), (RawEncoding::Evt3, 1280, 720));
         let payload = &file[h.data_offset..];
@@ -787,7 +821,7 @@ mod tests {
         words.extend([w(TIME_HIGH, 0), w(TIME_LOW, 0xC), w(TIME_LOW, 1), w(VECT_BASE_X, 20), w(ADDR_Y, 6)]);
         words.extend([w(VECT_8, 0xFF), w(ADDR_X, 0x800 | 1), w(0xE, 1), w(TIME_HIGH, 5)]);
         let mut data = bytes(&words);
-        let file = encode_evt3(bursts(5000, 3).view());
+        let file = encode_evt3(bursts(5000, 3).view()).unwrap();
         data.extend_from_slice(&file[parse_raw_header(&file, "f.raw").unwrap().data_offset..]);
         for time_shift in [false, true] {
             let (want, want_stats) = reference(&data, time_shift);
