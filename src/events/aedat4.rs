@@ -269,8 +269,8 @@ impl Aedat4Decoder {
         let buf: &[u8] = match self.compression {
             Aedat4Compression::None => payload,
             Aedat4Compression::Lz4 => {
-                lz4_decompress(payload, &mut scratch.buf).map_err(err)?;
-                &scratch.buf
+                let n = lz4_decompress(payload, &mut scratch.buf).map_err(err)?;
+                &scratch.buf[..n]
             }
             Aedat4Compression::Zstd => {
                 zstd_decompress(payload, &mut scratch.zstd, &mut scratch.buf).map_err(err)?;
@@ -355,7 +355,9 @@ fn event_structs(buf: &[u8]) -> Walk<(usize, usize)> {
 /// Decompress one LZ4 frame (LZ4 Frame Format 1.6.x), each block straight into the output: linked
 /// blocks (DV's default) see the previous 64 KiB of output as their dictionary. Checksums are not
 /// verified (DV writes none); corrupt block data still fails the bounds-checked block decoder.
-fn lz4_decompress(p: &[u8], out: &mut Vec<u8>) -> Walk<()> {
+/// Returns the decompressed length: the frame is `out[..length]` (`out` only grows, so a reused
+/// buffer is zeroed once, not per packet).
+fn lz4_decompress(p: &[u8], out: &mut Vec<u8>) -> Walk<usize> {
     let bad = |m: &str| format!("bad LZ4 frame: {m}");
     if !p.starts_with(&LZ4_MAGIC) {
         return Err(bad("no frame magic"));
@@ -380,8 +382,13 @@ fn lz4_decompress(p: &[u8], out: &mut Vec<u8>) -> Walk<()> {
         None
     };
     pos += 1 + if flg & 0x01 != 0 { 4 } else { 0 }; // dictionary id, header checksum
-    out.clear();
-    out.reserve(content_size.unwrap_or(4 * p.len()));
+                                                    // `out` is a reused buffer: it only grows (zeroed once), and `filled` bytes of it are this frame's.
+    let mut filled = 0;
+    let room = |out: &mut Vec<u8>, need: usize| {
+        if out.len() < need {
+            out.resize(need, 0);
+        }
+    };
     loop {
         let word = u32::from_le_bytes(bytes(p, pos).map_err(|_| bad("truncated block"))?);
         pos += 4;
@@ -392,25 +399,28 @@ fn lz4_decompress(p: &[u8], out: &mut Vec<u8>) -> Walk<()> {
         let block = p.get(pos..pos + len).ok_or_else(|| bad("truncated block"))?;
         pos += len + if block_checksum { 4 } else { 0 };
         if word & 0x8000_0000 != 0 {
-            out.extend_from_slice(block);
+            room(out, filled + block.len());
+            out[filled..filled + block.len()].copy_from_slice(block);
+            filled += block.len();
             continue;
         }
         // A block decodes to at most `max_block` bytes (and no more than the content size says).
-        let start = out.len();
-        out.resize(start + content_size.map_or(max_block, |n| n.saturating_sub(start).min(max_block)), 0);
-        let (previous, rest) = out.split_at_mut(start);
+        let limit = content_size.map_or(max_block, |n| n.saturating_sub(filled).min(max_block));
+        room(out, filled + limit);
+        let (previous, rest) = out.split_at_mut(filled);
+        let rest = &mut rest[..limit];
         let written = if linked {
-            let dict = &previous[start.saturating_sub(64 << 10)..];
+            let dict = &previous[filled.saturating_sub(64 << 10)..];
             lz4_flex::block::decompress_into_with_dict(block, rest, dict)
         } else {
             lz4_flex::block::decompress_into(block, rest)
         };
-        out.truncate(start + written.map_err(|e| bad(&e.to_string()))?);
+        filled += written.map_err(|e| bad(&e.to_string()))?;
     }
-    if content_size.is_some_and(|n| n != out.len()) {
+    if content_size.is_some_and(|n| n != filled) {
         return Err(bad("content size does not match the data"));
     }
-    Ok(())
+    Ok(filled)
 }
 
 /// Decompress one zstd frame. With a plausible content size in the frame header (DV always writes it)
@@ -966,8 +976,9 @@ mod tests {
     }
 
     fn lz4(frame: &[u8]) -> Vec<u8> {
-        let mut out = vec![1, 2, 3];
-        lz4_decompress(frame, &mut out).unwrap();
+        let mut out = vec![1; 100_000];
+        let n = lz4_decompress(frame, &mut out).unwrap();
+        out.truncate(n);
         out
     }
 
