@@ -91,7 +91,8 @@ fn bench(c: &mut Criterion) {
 
     // CPU rates are measured on a 1-thread pool: the calling thread's CPU time is all the work there.
     let single = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
-    for (name, file) in [("evt2", encode_evt2(ev.view())), ("evt3", encode_evt3(ev.view()))] {
+    for (name, file) in [("evt2", encode_evt2(ev.view()).unwrap()), ("evt3", encode_evt3(ev.view()).unwrap())]
+    {
         let h = parse_raw_header(&file, name).unwrap();
         let payload = &file[h.data_offset..];
         let mut run = || {
@@ -115,7 +116,7 @@ fn bench(c: &mut Criterion) {
         ("lz4", Aedat4Compression::Lz4),
         ("zstd", Aedat4Compression::Zstd),
     ] {
-        let file = encode_aedat4(ev.view(), compression, 4096);
+        let file = encode_aedat4(ev.view(), compression, 4096).unwrap();
         let h = parse_aedat4_header(&file, name).unwrap();
         let payload = &file[h.data_offset..];
         let mut run = || decode(&mut Aedat4Decoder::new(name, &h), payload, h.data_offset, &mut out);

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from evgs.cli import main
+from evgs.events.arrays import EventArray
 from evgs.events.io import EventWriter, read_events, write_events
 from evgs.events.synthetic import synthetic_events
 
@@ -149,3 +150,36 @@ def test_evt_writers_refuse_times_their_counter_cannot_hold(tmp_path: Path, fmt:
     assert not list(tmp_path.iterdir())
     write_events(out, ev, fmt=fmt)
     np.testing.assert_array_equal(read_events(out).t, ev.t)
+
+
+@pytest.mark.parametrize(
+    ("fmt", "name"),
+    [("evt2", "o2.raw"), ("evt3", "o3.raw"), ("aedat4", "o.aedat4"), ("aedat4-zstd", "z.aedat4")],
+)
+def test_camera_writers_stream_and_refuse_unsorted_input(tmp_path: Path, fmt: str, name: str) -> None:
+    """Each batch is encoded and written when it arrives (the temporary file grows); a batch that goes
+    back in time is a ValueError naming the event's index in the stream, and no output appears."""
+    ev = synthetic_events(20_000, 64, 48, seed=3)
+    first, second = (
+        EventArray(ev.t[s], ev.x[s], ev.y[s], ev.p[s], 64, 48) for s in (slice(10_000), slice(10_000, None))
+    )
+    out = tmp_path / name
+    with EventWriter(out, fmt, 64, 48) as w:
+        w.write(first)
+        (tmp,) = tmp_path.iterdir()
+        assert tmp.stat().st_size > 10_000
+        w.write(second)
+    same = read_events(out)
+    for k in "txyp":
+        np.testing.assert_array_equal(getattr(same, k), getattr(ev, k))
+    out.unlink()
+    t = second.t.copy()
+    t[5] = t[4] - 1
+    back = EventArray(t, second.x, second.y, second.p, 64, 48)
+    with (
+        pytest.raises(ValueError, match=rf"{name}: event 10005: time .* before the previous"),
+        EventWriter(out, fmt) as w,
+    ):
+        w.write(first)
+        w.write(back)
+    assert list(tmp_path.iterdir()) == []

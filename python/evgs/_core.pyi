@@ -92,15 +92,22 @@ def encode_npy_data(
     p: npt.NDArray[np.int8],
     style: str = "structured",
 ) -> npt.NDArray[np.uint8]: ...
-def encode_camera(
-    format: str,
-    t: npt.NDArray[np.int64],
-    x: npt.NDArray[np.uint16],
-    y: npt.NDArray[np.uint16],
-    p: npt.NDArray[np.int8],
-    width: int,
-    height: int,
-) -> npt.NDArray[np.uint8]: ...
+
+class CameraWriter:
+    """A camera-format file (evt2, evt3, aedat4 = aedat4-lz4, aedat4-zstd, aedat4-none) written batch by
+    batch; write to a temporary path and rename it after ``close``."""
+
+    def __init__(
+        self, path: str, format: str, width: int = 0, height: int = 0, *, name: str | None = None
+    ) -> None: ...
+    def write(
+        self,
+        t: npt.NDArray[np.int64],
+        x: npt.NDArray[np.uint16],
+        y: npt.NDArray[np.uint16],
+        p: npt.NDArray[np.int8],
+    ) -> None: ...
+    def close(self) -> None: ...
 
 # --- events: chunks, windows, event frames (src/py/frames.rs) ---
 

@@ -7,16 +7,16 @@
 //! read with `from_le_bytes` through bounds-checked slices; packets decompress in parallel and are
 //! appended in file order.
 
-use std::borrow::Cow;
 use std::io::Read;
 
 use rayon::prelude::*;
 
-use super::raw_header::DecodeStats;
+use super::raw_header::{check_encodable, DecodeStats};
 use super::{ColumnsMut, Decoder, Events, EventsView};
 use crate::error::{Error, Result};
 
 const MAGIC: &[u8; 14] = b"#!AER-DAT4.0\r\n";
+const LZ4_MAGIC: [u8; 4] = [0x04, 0x22, 0x4D, 0x18];
 /// Bytes of one `Event` struct: i64 t, i16 x, i16 y, bool on, 3 padding.
 const EVENT_SIZE: usize = 16;
 
@@ -227,12 +227,16 @@ pub struct Aedat4Decoder {
     stats: DecodeStats,
 }
 
-/// One decompressed event packet: the `Event` structs are `buf[start..start + 16·count]`.
-struct Unpacked<'a> {
-    offset: u64,
-    buf: Cow<'a, [u8]>,
-    start: usize,
-    count: usize,
+/// Offset of the first `Event` struct in a size-prefixed packet laid out as DV (and evgs) write it:
+/// size prefix, root offset, identifier, vtable, table, vector length.
+const DV_EVENTS_START: usize = 32;
+
+/// Per-worker decompression state, reused across packets so that decoding a packet allocates
+/// nothing and its output stays in cache until it is copied into the columns.
+#[derive(Default)]
+struct Scratch {
+    buf: Vec<u8>,
+    zstd: Option<zstd::bulk::Decompressor<'static>>,
 }
 
 impl Aedat4Decoder {
@@ -258,29 +262,49 @@ impl Aedat4Decoder {
         Error::format(&self.path, format!("byte offset {offset} (event packet)"), message)
     }
 
-    /// Decompress one event packet payload and locate its `Event` structs.
-    fn unpack<'a>(&self, offset: u64, payload: &'a [u8]) -> Result<Unpacked<'a>> {
-        let buf: Cow<'a, [u8]> = match self.compression {
-            Aedat4Compression::None => Cow::Borrowed(payload),
+    /// Decompress one event packet payload (into `scratch` unless stored uncompressed) and return
+    /// the bytes of its `Event` structs.
+    fn unpack<'a>(&self, offset: u64, payload: &'a [u8], scratch: &'a mut Scratch) -> Result<&'a [u8]> {
+        let err = |m| self.packet_error(offset, m);
+        let buf: &[u8] = match self.compression {
+            Aedat4Compression::None => payload,
             Aedat4Compression::Lz4 => {
-                Cow::Owned(lz4_decompress(payload).map_err(|m| self.packet_error(offset, m))?)
+                let n = lz4_decompress(payload, &mut scratch.buf).map_err(err)?;
+                &scratch.buf[..n]
             }
             Aedat4Compression::Zstd => {
-                Cow::Owned(zstd_decompress(payload).map_err(|m| self.packet_error(offset, m))?)
+                zstd_decompress(payload, &mut scratch.zstd, &mut scratch.buf).map_err(err)?;
+                &scratch.buf
             }
         };
-        let (start, count) = event_structs(&buf).map_err(|m| self.packet_error(offset, m))?;
-        Ok(Unpacked { offset, buf, start, count })
+        let (start, count) = event_structs(buf).map_err(err)?;
+        Ok(&buf[start..start + EVENT_SIZE * count])
     }
 
-    /// Copy a packet's events into the column slices, checking coordinates. The loop is branch-free
-    /// (a bad coordinate only sets a flag); the offending event is looked up afterwards.
-    fn fill(&self, p: &Unpacked<'_>, out: ColumnsMut<'_>) -> Result<()> {
+    /// The event count of a packet as told by its compressed frame's content size, assuming DV's
+    /// packet layout; `None` when the frame does not say (the count is then known only after
+    /// decompressing).
+    fn expected_count(&self, payload: &[u8]) -> Option<usize> {
+        let size = match self.compression {
+            Aedat4Compression::None => return event_structs(payload).ok().map(|(_, n)| n),
+            Aedat4Compression::Lz4 => {
+                let has_size =
+                    payload.starts_with(&LZ4_MAGIC) && payload.get(4).is_some_and(|f| f & 0x08 != 0);
+                u64::from_le_bytes(bytes(payload, 6).ok().filter(|_| has_size)?)
+            }
+            Aedat4Compression::Zstd => zstd::zstd_safe::get_frame_content_size(payload).ok()??,
+        };
+        let body = usize::try_from(size).ok()?.checked_sub(DV_EVENTS_START)?;
+        (body % EVENT_SIZE == 0).then_some(body / EVENT_SIZE)
+    }
+
+    /// Copy a packet's `Event` structs into the column slices, checking coordinates. The loop is
+    /// branch-free (a bad coordinate only sets a flag); the offending event is looked up afterwards.
+    fn fill(&self, offset: u64, structs: &[u8], out: ColumnsMut<'_>) -> Result<()> {
         let ColumnsMut { t, x, y, p: pol } = out;
         // Coordinates are i16; seen as u16 a negative one is ≥ 2^15, so one unsigned compare suffices.
         let xlim = if self.width == 0 { 1 << 15 } else { self.width };
         let ylim = if self.height == 0 { 1 << 15 } else { self.height };
-        let structs = &p.buf[p.start..p.start + EVENT_SIZE * p.count];
         let mut bad = false;
         for ((e, t), ((x, y), pol)) in
             structs.chunks_exact(EVENT_SIZE).zip(t).zip(x.iter_mut().zip(y.iter_mut()).zip(pol.iter_mut()))
@@ -304,7 +328,7 @@ impl Aedat4Decoder {
             .find(|&(_, (ex, ey))| ex < 0 || ey < 0 || ex as u32 >= xlim || ey as u32 >= ylim)
             .expect("a flagged coordinate exists");
         Err(self.packet_error(
-            p.offset,
+            offset,
             format!("event {j}: ({ex}, {ey}) outside the {}x{} sensor", self.width, self.height),
         ))
     }
@@ -331,9 +355,11 @@ fn event_structs(buf: &[u8]) -> Walk<(usize, usize)> {
 /// Decompress one LZ4 frame (LZ4 Frame Format 1.6.x), each block straight into the output: linked
 /// blocks (DV's default) see the previous 64 KiB of output as their dictionary. Checksums are not
 /// verified (DV writes none); corrupt block data still fails the bounds-checked block decoder.
-fn lz4_decompress(p: &[u8]) -> Walk<Vec<u8>> {
+/// Returns the decompressed length: the frame is `out[..length]` (`out` only grows, so a reused
+/// buffer is zeroed once, not per packet).
+fn lz4_decompress(p: &[u8], out: &mut Vec<u8>) -> Walk<usize> {
     let bad = |m: &str| format!("bad LZ4 frame: {m}");
-    if !p.starts_with(&[0x04, 0x22, 0x4D, 0x18]) {
+    if !p.starts_with(&LZ4_MAGIC) {
         return Err(bad("no frame magic"));
     }
     let [flg, bd] = bytes::<2>(p, 4).map_err(|_| bad("truncated header"))?;
@@ -356,7 +382,13 @@ fn lz4_decompress(p: &[u8]) -> Walk<Vec<u8>> {
         None
     };
     pos += 1 + if flg & 0x01 != 0 { 4 } else { 0 }; // dictionary id, header checksum
-    let mut out = Vec::with_capacity(content_size.unwrap_or(4 * p.len()));
+                                                    // `out` is a reused buffer: it only grows (zeroed once), and `filled` bytes of it are this frame's.
+    let mut filled = 0;
+    let room = |out: &mut Vec<u8>, need: usize| {
+        if out.len() < need {
+            out.resize(need, 0);
+        }
+    };
     loop {
         let word = u32::from_le_bytes(bytes(p, pos).map_err(|_| bad("truncated block"))?);
         pos += 4;
@@ -367,44 +399,114 @@ fn lz4_decompress(p: &[u8]) -> Walk<Vec<u8>> {
         let block = p.get(pos..pos + len).ok_or_else(|| bad("truncated block"))?;
         pos += len + if block_checksum { 4 } else { 0 };
         if word & 0x8000_0000 != 0 {
-            out.extend_from_slice(block);
+            room(out, filled + block.len());
+            out[filled..filled + block.len()].copy_from_slice(block);
+            filled += block.len();
             continue;
         }
         // A block decodes to at most `max_block` bytes (and no more than the content size says).
-        let start = out.len();
-        out.resize(start + content_size.map_or(max_block, |n| n.saturating_sub(start).min(max_block)), 0);
-        let (previous, rest) = out.split_at_mut(start);
+        let limit = content_size.map_or(max_block, |n| n.saturating_sub(filled).min(max_block));
+        room(out, filled + limit);
+        let (previous, rest) = out.split_at_mut(filled);
+        let rest = &mut rest[..limit];
         let written = if linked {
-            let dict = &previous[start.saturating_sub(64 << 10)..];
+            let dict = &previous[filled.saturating_sub(64 << 10)..];
             lz4_flex::block::decompress_into_with_dict(block, rest, dict)
         } else {
             lz4_flex::block::decompress_into(block, rest)
         };
-        out.truncate(start + written.map_err(|e| bad(&e.to_string()))?);
+        filled += written.map_err(|e| bad(&e.to_string()))?;
     }
-    if content_size.is_some_and(|n| n != out.len()) {
+    if content_size.is_some_and(|n| n != filled) {
         return Err(bad("content size does not match the data"));
     }
-    Ok(out)
+    Ok(filled)
 }
 
 /// Decompress one zstd frame. With a plausible content size in the frame header (DV always writes it)
 /// the frame decodes straight into an exactly sized buffer; otherwise it streams, so a corrupt size
 /// field cannot request a huge allocation.
-fn zstd_decompress(payload: &[u8]) -> Walk<Vec<u8>> {
+fn zstd_decompress(
+    payload: &[u8],
+    context: &mut Option<zstd::bulk::Decompressor<'static>>,
+    out: &mut Vec<u8>,
+) -> Walk<()> {
     let bad = |e: &dyn std::fmt::Display| format!("bad ZSTD frame: {e}");
     let plausible = (payload.len() as u64).saturating_mul(256).max(1 << 20);
+    out.clear();
     match zstd::zstd_safe::get_frame_content_size(payload) {
         Ok(Some(size)) if size <= plausible => {
-            zstd::bulk::decompress(payload, size as usize).map_err(|e| bad(&e))
+            let context = match context {
+                Some(c) => c,
+                None => context.insert(zstd::bulk::Decompressor::new().map_err(|e| bad(&e))?),
+            };
+            out.reserve(size as usize);
+            context.decompress_to_buffer(payload, out).map_err(|e| bad(&e))?;
         }
         _ => {
-            let mut v = Vec::new();
             zstd::stream::read::Decoder::with_buffer(payload)
-                .and_then(|mut d| d.read_to_end(&mut v))
+                .and_then(|mut d| d.read_to_end(out))
                 .map_err(|e| bad(&e))?;
-            Ok(v)
         }
+    }
+    Ok(())
+}
+
+impl Aedat4Decoder {
+    /// Decode `packets` (file offset, payload) in parallel, appending their events in file order;
+    /// the error is the first in file order.
+    ///
+    /// When every frame header gives the event count (DV's layout), each packet decompresses into
+    /// its worker's scratch buffer and is copied straight to its final place. Otherwise (or if a
+    /// count turns out different) the packets decompress into buffers of their own first.
+    fn unpack_all(&self, packets: &[(u64, &[u8])], out: &mut Events) -> Result<()> {
+        let old = out.len();
+        let counts: Option<Vec<usize>> = packets.iter().map(|&(_, p)| self.expected_count(p)).collect();
+        if let Some(counts) = counts {
+            out.append_zeroed(counts.iter().sum());
+            let parts = out.split_mut(old, counts);
+            let done: Vec<Result<bool>> = packets
+                .par_iter()
+                .zip(parts)
+                .map_init(Scratch::default, |scratch, (&(at, payload), part)| {
+                    let structs = self.unpack(at, payload, scratch)?;
+                    if structs.len() != EVENT_SIZE * part.t.len() {
+                        return Ok(false);
+                    }
+                    self.fill(at, structs, part).map(|()| true)
+                })
+                .collect();
+            match done.into_iter().find(|r| !matches!(r, Ok(true))) {
+                None => return Ok(()),
+                Some(Err(e)) => {
+                    out.truncate(old);
+                    return Err(e);
+                }
+                Some(Ok(_)) => out.truncate(old),
+            }
+        }
+        let unpacked: Vec<Result<Vec<u8>>> = packets
+            .par_iter()
+            .map_init(Scratch::default, |scratch, &(at, payload)| {
+                self.unpack(at, payload, scratch).map(<[u8]>::to_vec)
+            })
+            .collect();
+        let ok = unpacked.iter().take_while(|r| r.is_ok()).count();
+        let structs: Vec<&[u8]> = unpacked[..ok].iter().flatten().map(Vec::as_slice).collect();
+        out.append_zeroed(structs.iter().map(|s| s.len() / EVENT_SIZE).sum());
+        let parts = out.split_mut(old, structs.iter().map(|s| s.len() / EVENT_SIZE));
+        let filled: Vec<Result<()>> = structs
+            .par_iter()
+            .zip(packets)
+            .zip(parts)
+            .map(|((s, &(at, _)), part)| self.fill(at, s, part))
+            .collect();
+        let first_error = filled.into_iter().find_map(|r| r.err());
+        if let Some(e) = first_error.or_else(|| unpacked.into_iter().nth(ok).and_then(|r| r.err())) {
+            out.truncate(old);
+            return Err(e);
+        }
+        Ok(())
     }
 }
 
@@ -454,18 +556,7 @@ impl Decoder for Aedat4Decoder {
             }
             pos = end;
         }
-        let unpacked: Vec<Result<Unpacked>> =
-            packets.par_iter().map(|&(at, payload)| self.unpack(at, payload)).collect();
-        let unpacked = unpacked.into_iter().collect::<Result<Vec<_>>>()?;
-
-        let old = out.append_zeroed(unpacked.iter().map(|p| p.count).sum());
-        let parts = out.split_mut(old, unpacked.iter().map(|p| p.count));
-        let filled: Vec<Result<()>> =
-            unpacked.par_iter().zip(parts).map(|(pk, part)| self.fill(pk, part)).collect();
-        if let Some(e) = filled.into_iter().find_map(|r| r.err()) {
-            out.truncate(old);
-            return Err(e);
-        }
+        self.unpack_all(&packets, out)?;
         Ok(if self.done { data.len() } else { pos })
     }
 
@@ -494,46 +585,152 @@ impl Decoder for Aedat4Decoder {
 
 // ---- Encoder ----
 
-/// Byte offset of `dataTablePosition` in the file written by [`encode_aedat4`] (patched at the end).
-const DATA_TABLE_FIELD: usize = 18 + 32;
+/// Byte offset of the `dataTablePosition` field in the header [`Aedat4Encoder`] writes: the writer
+/// patches it once the table's position is known.
+pub const DATA_TABLE_FIELD: u64 = 18 + 32;
 
-/// Encode events as a complete AEDAT 4.0 file: one event stream (ID 0), `events_per_packet` events per
-/// packet, each packet compressed as one LZ4 frame (linked blocks, as DV writes) or one ZSTD frame
-/// (with its content size, which DV requires), then a FileDataTable. Panics if `events_per_packet`
-/// is 0 or a coordinate exceeds i16.
+/// Streaming AEDAT 4.0 encoder: one event stream (ID 0), `events_per_packet` events per packet, each
+/// compressed (in parallel) as one LZ4 frame (linked blocks, as DV writes) or one ZSTD frame (with
+/// its content size, which DV requires), then a FileDataTable. The file is [`Aedat4Encoder::header`],
+/// the bytes of every [`Aedat4Encoder::encode`], those of [`Aedat4Encoder::finish`], and the table
+/// position it returns written at [`DATA_TABLE_FIELD`].
+#[derive(Debug, Clone)]
+pub struct Aedat4Encoder {
+    path: String,
+    compression: Aedat4Compression,
+    events_per_packet: usize,
+    xlim: u32,
+    ylim: u32,
+    header: Vec<u8>,
+    /// Events of a partial packet, carried into the next batch.
+    carry: Events,
+    table: Vec<TableEntry>,
+    /// Bytes produced so far (header included): the file offset of the next byte.
+    written: u64,
+    last_t: Option<i64>,
+    seen: u64,
+}
+
+impl Aedat4Encoder {
+    /// `path` names the output in errors; coordinates must fit the sensor (`width`/`height`, 0 =
+    /// unknown) and i16. Errors if `events_per_packet` is 0.
+    pub fn new(
+        path: &str,
+        width: u32,
+        height: u32,
+        compression: Aedat4Compression,
+        events_per_packet: usize,
+    ) -> Result<Self> {
+        if events_per_packet == 0 {
+            return Err(Error::Invalid(format!("{path}: AEDAT 4 events_per_packet must be positive")));
+        }
+        let io = io_header(compression, &info_xml(width, height, compression));
+        let mut header = MAGIC.to_vec();
+        header.extend_from_slice(&(io.len() as u32).to_le_bytes());
+        header.extend_from_slice(&io);
+        let lim = |n: u32| if n == 0 { 1 << 15 } else { n.min(1 << 15) };
+        Ok(Aedat4Encoder {
+            path: path.into(),
+            compression,
+            events_per_packet,
+            xlim: lim(width),
+            ylim: lim(height),
+            written: header.len() as u64,
+            header,
+            carry: Events::default(),
+            table: Vec::new(),
+            last_t: None,
+            seen: 0,
+        })
+    }
+
+    /// The magic and IOHeader, with `dataTablePosition` −1 until patched.
+    pub fn header(&self) -> &[u8] {
+        &self.header
+    }
+
+    /// Append the packets completed by the stream's next events to `out` (a partial packet waits for
+    /// the next batch). Unsorted times and coordinates that do not fit are errors naming the event's
+    /// index in the stream (nothing of the batch is written then).
+    pub fn encode(&mut self, ev: EventsView<'_>, out: &mut Vec<u8>) -> Result<()> {
+        check_encodable(&self.path, "AEDAT 4", ev, self.last_t, self.seen, i64::MIN, self.xlim, self.ylim)?;
+        self.last_t = ev.t.last().copied().or(self.last_t);
+        self.seen += ev.len() as u64;
+        // Packets are cut from the carried events followed by this batch.
+        let mut joined = std::mem::take(&mut self.carry);
+        let all = if joined.is_empty() {
+            ev
+        } else {
+            extend_from_view(&mut joined, ev);
+            joined.view()
+        };
+        let full = all.len() / self.events_per_packet * self.events_per_packet;
+        self.write_packets(all, full, out);
+        extend_from_view(&mut self.carry, slice_view(all, full, all.len()));
+        Ok(())
+    }
+
+    /// Append the last partial packet and the FileDataTable to `out`; returns the table's file
+    /// offset, to be written at [`DATA_TABLE_FIELD`].
+    pub fn finish(&mut self, out: &mut Vec<u8>) -> u64 {
+        let carry = std::mem::take(&mut self.carry);
+        self.write_packets(carry.view(), carry.len(), out);
+        let position = self.written;
+        let table = compress(&data_table(&self.table), self.compression);
+        self.written += table.len() as u64;
+        out.extend_from_slice(&table);
+        position
+    }
+
+    /// Compress events `0..n` of `ev` as packets (in parallel) and append them to `out`.
+    fn write_packets(&mut self, ev: EventsView<'_>, n: usize, out: &mut Vec<u8>) {
+        let per = self.events_per_packet;
+        let starts: Vec<usize> = (0..n).step_by(per).collect();
+        let payloads: Vec<Vec<u8>> = starts
+            .par_iter()
+            .map(|&s| compress(&event_packet(ev, s, (s + per).min(n)), self.compression))
+            .collect();
+        for (&s, payload) in starts.iter().zip(&payloads) {
+            let e = (s + per).min(n);
+            self.table.push(TableEntry {
+                offset: self.written + 8,
+                size: payload.len(),
+                count: e - s,
+                t0: ev.t[s],
+                t1: ev.t[e - 1],
+            });
+            out.extend_from_slice(&0i32.to_le_bytes());
+            out.extend_from_slice(&(payload.len() as i32).to_le_bytes());
+            out.extend_from_slice(payload);
+            self.written += 8 + payload.len() as u64;
+        }
+    }
+}
+
+fn slice_view<'a>(ev: EventsView<'a>, from: usize, to: usize) -> EventsView<'a> {
+    EventsView { t: &ev.t[from..to], x: &ev.x[from..to], y: &ev.y[from..to], p: &ev.p[from..to], ..ev }
+}
+
+fn extend_from_view(e: &mut Events, v: EventsView<'_>) {
+    e.t.extend_from_slice(v.t);
+    e.x.extend_from_slice(v.x);
+    e.y.extend_from_slice(v.y);
+    e.p.extend_from_slice(v.p);
+}
+
+/// A complete AEDAT 4.0 file for the events (see [`Aedat4Encoder`]).
 pub fn encode_aedat4(
     ev: EventsView<'_>,
     compression: Aedat4Compression,
     events_per_packet: usize,
-) -> Vec<u8> {
-    assert!(events_per_packet > 0, "encode_aedat4: events_per_packet must be positive");
-    let header = io_header(compression, &info_xml(ev.width, ev.height, compression));
-    let mut out = MAGIC.to_vec();
-    out.extend_from_slice(&(header.len() as u32).to_le_bytes());
-    out.extend_from_slice(&header);
-    let starts: Vec<usize> = (0..ev.len()).step_by(events_per_packet).collect();
-    let payloads: Vec<Vec<u8>> = starts
-        .par_iter()
-        .map(|&s| compress(&event_packet(ev, s, (s + events_per_packet).min(ev.len())), compression))
-        .collect();
-    let mut table = Vec::with_capacity(starts.len());
-    for (&s, payload) in starts.iter().zip(&payloads) {
-        let e = (s + events_per_packet).min(ev.len());
-        table.push(TableEntry {
-            offset: out.len() + 8,
-            size: payload.len(),
-            count: e - s,
-            t0: ev.t[s],
-            t1: ev.t[e - 1],
-        });
-        out.extend_from_slice(&0i32.to_le_bytes());
-        out.extend_from_slice(&(payload.len() as i32).to_le_bytes());
-        out.extend_from_slice(payload);
-    }
-    let position = out.len() as i64;
-    out[DATA_TABLE_FIELD..DATA_TABLE_FIELD + 8].copy_from_slice(&position.to_le_bytes());
-    out.extend_from_slice(&compress(&data_table(&table), compression));
-    out
+) -> Result<Vec<u8>> {
+    let mut enc = Aedat4Encoder::new("memory", ev.width, ev.height, compression, events_per_packet)?;
+    let mut out = enc.header().to_vec();
+    enc.encode(ev, &mut out)?;
+    let position = enc.finish(&mut out);
+    let field = DATA_TABLE_FIELD as usize;
+    out[field..field + 8].copy_from_slice(&(position as i64).to_le_bytes());
+    Ok(out)
 }
 
 fn info_xml(width: u32, height: u32, compression: Aedat4Compression) -> String {
@@ -603,8 +800,8 @@ fn event_packet(ev: EventsView<'_>, s: usize, e: usize) -> Vec<u8> {
     b.extend_from_slice(&4u32.to_le_bytes());
     b.extend_from_slice(&(n as u32).to_le_bytes());
     for i in s..e {
-        let (x, y) = (i16::try_from(ev.x[i]), i16::try_from(ev.y[i]));
-        let (Ok(x), Ok(y)) = (x, y) else { panic!("encode_aedat4: event {i}: coordinates exceed i16") };
+        // Checked by the encoder: coordinates are below 2^15.
+        let (x, y) = (ev.x[i] as i16, ev.y[i] as i16);
         b.extend_from_slice(&ev.t[i].to_le_bytes());
         b.extend_from_slice(&x.to_le_bytes());
         b.extend_from_slice(&y.to_le_bytes());
@@ -614,8 +811,9 @@ fn event_packet(ev: EventsView<'_>, s: usize, e: usize) -> Vec<u8> {
 }
 
 /// One FileDataTable row: where a packet's payload is and what it holds.
+#[derive(Debug, Clone)]
 struct TableEntry {
-    offset: usize,
+    offset: u64,
     size: usize,
     count: usize,
     t0: i64,
@@ -777,6 +975,19 @@ mod tests {
         f
     }
 
+    fn lz4(frame: &[u8]) -> Vec<u8> {
+        let mut out = vec![1; 100_000];
+        let n = lz4_decompress(frame, &mut out).unwrap();
+        out.truncate(n);
+        out
+    }
+
+    fn zstd(frame: &[u8]) -> Vec<u8> {
+        let (mut context, mut out) = (None, vec![1, 2, 3]);
+        zstd_decompress(frame, &mut context, &mut out).unwrap();
+        out
+    }
+
     fn packet(stream: i32, payload: &[u8]) -> Vec<u8> {
         let mut p = stream.to_le_bytes().to_vec();
         p.extend_from_slice(&(payload.len() as i32).to_le_bytes());
@@ -911,7 +1122,7 @@ mod tests {
     fn round_trips_with_data_table() {
         let ev = feed::random_events(10_000, 3, 1_700_000_000_000_000, 5, 346, 260);
         for compression in [Aedat4Compression::None, Aedat4Compression::Lz4, Aedat4Compression::Zstd] {
-            let file = encode_aedat4(ev.view(), compression, 777);
+            let file = encode_aedat4(ev.view(), compression, 777).unwrap();
             let h = parse_aedat4_header(&file, "f.aedat4").unwrap();
             assert_eq!((h.compression, h.width, h.height, h.event_stream_id), (compression, 346, 260, 0));
             for piece in [file.len(), 4096, 7] {
@@ -922,8 +1133,8 @@ mod tests {
             let position = h.data_table_position as usize;
             let table = match compression {
                 Aedat4Compression::None => file[position..].to_vec(),
-                Aedat4Compression::Lz4 => lz4_decompress(&file[position..]).unwrap(),
-                Aedat4Compression::Zstd => zstd_decompress(&file[position..]).unwrap(),
+                Aedat4Compression::Lz4 => lz4(&file[position..]),
+                Aedat4Compression::Zstd => zstd(&file[position..]),
             };
             let b = &table[4..];
             let (first, n) = vector(b, root(b, b"FTAB").unwrap(), 0).unwrap();
@@ -947,7 +1158,7 @@ mod tests {
     #[test]
     fn result_is_independent_of_thread_count() {
         let ev = feed::random_events(20_000, 5, 0, 3, 128, 128);
-        let file = encode_aedat4(ev.view(), Aedat4Compression::Lz4, 500);
+        let file = encode_aedat4(ev.view(), Aedat4Compression::Lz4, 500).unwrap();
         let decode_with = |threads| {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
             pool.install(|| decode(&file, file.len()).unwrap().0)
@@ -961,6 +1172,43 @@ mod tests {
         let data: Vec<u8> = (0..5000u32).map(|i| (i * 7 % 251) as u8).collect();
         let z = compress(&data, Aedat4Compression::Zstd);
         assert_eq!(zstd::zstd_safe::get_frame_content_size(&z).ok(), Some(Some(5000)));
-        assert_eq!(zstd_decompress(&z).unwrap(), data);
+        assert_eq!(zstd(&z), data);
+    }
+
+    /// Packets whose frames state no content size, or whose layout differs from DV's (padding after
+    /// the events), take the general path; the result and the first error are the same as on the
+    /// direct path, whichever path a call takes.
+    #[test]
+    fn direct_and_general_paths_agree() {
+        let many: Vec<Ev> =
+            (0..300).map(|i| (1000 + i, (i % 64) as i16, (i % 48) as i16, i % 3 == 0)).collect();
+        let padded = |events: &[Ev]| {
+            let mut p = events_packet(events);
+            p.extend_from_slice(&[0; 16]);
+            let n = p.len() as u32 - 4;
+            p[..4].copy_from_slice(&n.to_le_bytes());
+            p
+        };
+        let sized = |p: &[u8]| compress(p, Aedat4Compression::Lz4);
+        let cases: [(Vec<u8>, &str); 3] = [
+            (sized(&events_packet(&many)), "direct"),
+            (lz4_stored(&events_packet(&many)), "no content size"),
+            (sized(&padded(&many)), "padded"),
+        ];
+        let mut header = io_header(Some(1), None, XML);
+        header.extend(packet(3, &sized(&events_packet(&A))));
+        for (last, what) in cases {
+            let mut file = header.clone();
+            file.extend(packet(3, &last));
+            let (ev, _) = decode(&file, file.len()).unwrap();
+            assert_eq!(as_tuples(&ev), A.iter().chain(&many).copied().collect::<Vec<_>>(), "{what}");
+            // A bad coordinate in the first packet is reported before anything in later packets.
+            let mut bad = io_header(Some(1), None, XML);
+            bad.extend(packet(3, &sized(&events_packet(&[(5, 1, 1, true), (6, 64, 0, true)]))));
+            bad.extend(packet(3, &last));
+            bad.extend(packet(3, b"\x04\x22\x4d\x18garbage"));
+            let e = decode(&bad, bad.len()).unwrap_err().to_string();
+            assert!(e.contains("event 1: (64, 0)"), "{what}: {e}");
+        }
     }
 }

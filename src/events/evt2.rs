@@ -4,7 +4,7 @@
 //! counter wraps every 2^34 µs, which is undone by comparing each new unwrapped base with the
 //! previous unwrapped base (never the raw value with the unwrapped one).
 
-use super::raw_header::{write_raw_header, DecodeStats, RawEncoding, MAX_COORD};
+use super::raw_header::{check_encodable, write_raw_header, DecodeStats, RawEncoding, MAX_COORD};
 use super::{ColumnsMut, Decoder, Events, EventsView};
 use crate::error::{Error, Result};
 use rayon::prelude::*;
@@ -242,39 +242,72 @@ impl Decoder for Evt2Decoder {
     }
 }
 
-/// Encode sorted, non-negative-time events as a complete EVT 2.0 `.raw` file (header + payload).
+/// Streaming EVT 2.0 encoder: the payload of a `.raw` file, batch by batch after [`write_raw_header`].
 ///
 /// TIME_HIGH is written whenever bits 33..6 of time change; when the 34-bit counter wraps, TIME_HIGH
 /// words at the last base before the wrap and at the wrap are inserted so the decoder sees the fall.
 /// Times decode absolutely only within the first 2^34 µs of the first event's period (the format has
-/// no higher bits). Panics on unsorted or negative times or coordinates above 2047.
-pub fn encode_evt2(ev: EventsView<'_>) -> Vec<u8> {
-    let mut out = write_raw_header(RawEncoding::Evt2, ev.width, ev.height);
-    out.reserve(ev.len() * 4 + ev.len() / 16 * 4);
-    let mut current: Option<i64> = None;
-    for i in 0..ev.len() {
-        let (t, x, y) = (ev.t[i], ev.x[i], ev.y[i]);
-        assert!(
-            t >= 0 && current.is_none_or(|c| c <= t),
-            "encode_evt2: event {i}: times must be sorted and >= 0"
-        );
-        assert!(x < 2048 && y < 2048, "encode_evt2: event {i}: ({x}, {y}) does not fit 11 bits");
-        let high = t & !63;
-        if current != Some(high) {
-            if let Some(previous) = current {
-                for wrap in (previous / WRAP + 1..=high / WRAP).map(|k| k * WRAP) {
-                    push_time_high(&mut out, (wrap - 64).max(previous));
-                    push_time_high(&mut out, wrap);
-                }
-            }
-            push_time_high(&mut out, high);
-            current = Some(high);
+/// no higher bits).
+#[derive(Debug, Clone)]
+pub struct Evt2Encoder {
+    path: String,
+    xlim: u32,
+    ylim: u32,
+    /// The last TIME_HIGH base written.
+    current: Option<i64>,
+    last_t: Option<i64>,
+    seen: u64,
+}
+
+impl Evt2Encoder {
+    /// `path` names the output in errors; coordinates must fit the sensor (`width`/`height`, 0 =
+    /// unknown) and the 11-bit address fields.
+    pub fn new(path: &str, width: u32, height: u32) -> Self {
+        let lim = |n: u32| if n == 0 { MAX_COORD } else { n.min(MAX_COORD) };
+        Evt2Encoder {
+            path: path.into(),
+            xlim: lim(width),
+            ylim: lim(height),
+            current: None,
+            last_t: None,
+            seen: 0,
         }
-        let kind = if ev.p[i] > 0 { CD_ON } else { CD_OFF };
-        let w = (kind << 28) | (((t & 63) as u32) << 22) | (u32::from(x) << 11) | u32::from(y);
-        out.extend_from_slice(&w.to_le_bytes());
     }
-    out
+
+    /// Append the words of the stream's next events to `out`. Unsorted or negative times and
+    /// coordinates that do not fit are errors naming the event's index in the stream (nothing of
+    /// the batch is written then).
+    pub fn encode(&mut self, ev: EventsView<'_>, out: &mut Vec<u8>) -> Result<()> {
+        check_encodable(&self.path, "EVT 2.0", ev, self.last_t, self.seen, 0, self.xlim, self.ylim)?;
+        out.reserve(ev.len() * 4 + ev.len() / 16 * 4);
+        for i in 0..ev.len() {
+            let (t, x, y) = (ev.t[i], ev.x[i], ev.y[i]);
+            let high = t & !63;
+            if self.current != Some(high) {
+                if let Some(previous) = self.current {
+                    for wrap in (previous / WRAP + 1..=high / WRAP).map(|k| k * WRAP) {
+                        push_time_high(out, (wrap - 64).max(previous));
+                        push_time_high(out, wrap);
+                    }
+                }
+                push_time_high(out, high);
+                self.current = Some(high);
+            }
+            let kind = if ev.p[i] > 0 { CD_ON } else { CD_OFF };
+            let w = (kind << 28) | (((t & 63) as u32) << 22) | (u32::from(x) << 11) | u32::from(y);
+            out.extend_from_slice(&w.to_le_bytes());
+        }
+        self.last_t = ev.t.last().copied().or(self.last_t);
+        self.seen += ev.len() as u64;
+        Ok(())
+    }
+}
+
+/// A complete EVT 2.0 `.raw` file (header + payload) for sorted, non-negative-time events.
+pub fn encode_evt2(ev: EventsView<'_>) -> Result<Vec<u8>> {
+    let mut out = write_raw_header(RawEncoding::Evt2, ev.width, ev.height);
+    Evt2Encoder::new("memory", ev.width, ev.height).encode(ev, &mut out)?;
+    Ok(out)
 }
 
 fn push_time_high(out: &mut Vec<u8>, base: i64) {
@@ -362,7 +395,7 @@ mod tests {
     fn round_trip_across_wraps_whole_and_in_pieces() {
         let mut ev = feed::random_events(5000, 7, (1 << 34) - 20_000, 50, 640, 480);
         ev.extend(&feed::random_events(100, 9, 3 * (1 << 34) + 5, 100_000_000_000, 640, 480));
-        let file = encode_evt2(ev.view());
+        let file = encode_evt2(ev.view()).unwrap();
         let header = parse_raw_header(&file, "f.raw").unwrap();
         assert_eq!((header.encoding, header.width, header.height), (RawEncoding::Evt2, 640, 480));
         let payload = &file[header.data_offset..];
@@ -389,7 +422,8 @@ mod tests {
         }
         let mut data = bytes(&words);
         let payload = {
-            let file = encode_evt2(feed::random_events(3000, 3, (1 << 34) - 9000, 40, 640, 480).view());
+            let file =
+                encode_evt2(feed::random_events(3000, 3, (1 << 34) - 9000, 40, 640, 480).view()).unwrap();
             let h = parse_raw_header(&file, "f.raw").unwrap();
             file[h.data_offset..].to_vec()
         };

@@ -12,6 +12,7 @@ pub mod reader;
 pub mod text;
 pub mod undistort;
 pub mod window;
+pub mod writer;
 
 use rayon::prelude::*;
 

@@ -2,6 +2,7 @@
 //! counters every camera decoder reports (so the CLI can say what was skipped instead of hiding it).
 
 use crate::error::{Error, Result};
+use crate::events::EventsView;
 
 /// The payload encoding named by the header.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -131,6 +132,40 @@ fn format_geometry(format: &str, path: &str) -> Result<Option<(u32, u32)>> {
 fn parse_geometry(value: &str) -> Option<(u32, u32)> {
     let (w, h) = value.trim().split_once('x')?;
     Some((w.trim().parse().ok()?, h.trim().parse().ok()?))
+}
+
+/// Check the next `ev` of a stream before an encoder writes it: times non-decreasing (from `previous`,
+/// the last time written) and at least `min_t`, coordinates below `xlim` × `ylim`. `seen` events came
+/// before, so the error names the event's index in the whole stream.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn check_encodable(
+    path: &str,
+    format: &str,
+    ev: EventsView<'_>,
+    previous: Option<i64>,
+    seen: u64,
+    min_t: i64,
+    xlim: u32,
+    ylim: u32,
+) -> Result<()> {
+    let mut last = previous.unwrap_or(i64::MIN);
+    let bad = (0..ev.len()).find(|&i| {
+        let t = ev.t[i];
+        let ok = t >= last && t >= min_t && u32::from(ev.x[i]) < xlim && u32::from(ev.y[i]) < ylim;
+        last = t;
+        !ok
+    });
+    let Some(i) = bad else { return Ok(()) };
+    let (t, x, y) = (ev.t[i], ev.x[i], ev.y[i]);
+    let message = if i > 0 && t < ev.t[i - 1] || i == 0 && previous.is_some_and(|q| t < q) {
+        let q = if i > 0 { ev.t[i - 1] } else { previous.unwrap_or_default() };
+        format!("time {t} µs is before the previous event's {q} µs: {format} needs time-sorted events (sort first)")
+    } else if t < min_t {
+        format!("time {t} µs is negative: {format} cannot store it (shift the times first)")
+    } else {
+        format!("({x}, {y}) does not fit {format}'s {xlim}x{ylim} coordinate range")
+    };
+    Err(Error::format(path, format!("event {}", seen + i as u64), message))
 }
 
 /// The header the encoders write: legacy `evt` line (old readers), `format` with geometry, `% end`.

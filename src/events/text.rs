@@ -13,7 +13,7 @@
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
-use crate::events::{Decoder, Events, EventsView};
+use crate::events::{ColumnsMut, Decoder, Events, EventsView};
 
 /// Unit of the time column.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -364,7 +364,11 @@ fn lossy(f: &[u8]) -> String {
 
 /// The outcome of parsing one line-aligned sub-chunk.
 struct Chunk {
-    events: Events,
+    /// Events written to the front of the chunk's output slots.
+    events: usize,
+    /// Times of the first and last event.
+    first_t: Option<i64>,
+    last_t: Option<i64>,
     /// Lines in the chunk (terminated ones, plus a final unterminated one if any).
     lines: u64,
     /// 1-based line (within the chunk) of the first event, for the cross-chunk sortedness check.
@@ -522,14 +526,29 @@ impl LineParser<'_> {
         Some(((t, x, y, p), i))
     }
 
-    fn parse_chunk(&self, data: &[u8]) -> Chunk {
-        let mut events = Events::with_capacity(data.len() / 16, self.width, self.height);
+    /// Parse a line-aligned piece into `out`, which has one slot per line (blank and comment lines
+    /// leave slots unused at the end).
+    fn parse_chunk(&self, data: &[u8], out: ColumnsMut<'_>) -> Chunk {
+        let ColumnsMut { t: ts, x: xs, y: ys, p: ps } = out;
+        let mut k = 0;
         let mut lines = 0u64;
         let mut first_event_line = 0u64;
+        let plain = match self.layout.delimiter {
+            Delimiter::Byte(d)
+                if self.exp == 0 && self.layout.roles == [Role::T, Role::X, Role::Y, Role::P] =>
+            {
+                Some(d)
+            }
+            _ => None,
+        };
         let mut pos = 0;
         while pos < data.len() {
             lines += 1;
-            let parsed = match self.fast_line(data, pos) {
+            let fast = match plain {
+                Some(d) if pos + PLAIN_WINDOW <= data.len() => plain_line(data, pos, d),
+                _ => None,
+            };
+            let parsed = match fast.or_else(|| self.fast_line(data, pos)) {
                 Some((ev, next)) => {
                     pos = next;
                     Ok(ev)
@@ -550,22 +569,64 @@ impl LineParser<'_> {
                         || (self.height > 0 && u32::from(y) >= self.height)
                     {
                         format!("event ({x}, {y}) outside the {}x{} sensor", self.width, self.height)
-                    } else if self.require_sorted && events.t.last().is_some_and(|&last| t < last) {
-                        format!("time goes backwards ({t} < previous {})", events.t.last().unwrap())
+                    } else if self.require_sorted && k > 0 && t < ts[k - 1] {
+                        format!("time goes backwards ({t} < previous {})", ts[k - 1])
                     } else {
-                        if events.is_empty() {
+                        if k == 0 {
                             first_event_line = lines;
                         }
-                        events.push(t, x, y, p);
+                        (ts[k], xs[k], ys[k], ps[k]) = (t, x, y, p);
+                        k += 1;
                         continue;
                     }
                 }
                 Err(msg) => msg,
             };
-            return Chunk { events, lines, first_event_line, error: Some((lines, msg)) };
+            return Chunk {
+                events: k,
+                first_t: None,
+                last_t: None,
+                lines,
+                first_event_line,
+                error: Some((lines, msg)),
+            };
         }
-        Chunk { events, lines, first_event_line, error: None }
+        let (first_t, last_t) = (ts[..k].first().copied(), ts[..k].last().copied());
+        Chunk { events: k, first_t, last_t, lines, first_event_line, error: None }
     }
+}
+
+/// Bytes [`plain_line`] may look at: the longest line it accepts, with room to spare.
+const PLAIN_WINDOW: usize = 48;
+
+/// The most common layout, `t,x,y,p` with integer µs and 0/1 polarity, with fixed field limits and no
+/// end-of-data checks (the caller guarantees [`PLAIN_WINDOW`] bytes). Anything else — more digits,
+/// signs, spaces, other polarity spellings, errors — returns `None` for the general parsers.
+#[inline(always)]
+fn plain_line(data: &[u8], pos: usize, d: u8) -> Option<((i64, u16, u16, i8), usize)> {
+    let b: &[u8; PLAIN_WINDOW] = data[pos..pos + PLAIN_WINDOW].try_into().unwrap();
+    // An unsigned field of 1..`max` digits followed by `end`; returns (value, index after `end`).
+    let field = |mut i: usize, max: usize, end: u8| {
+        let (start, mut v) = (i, 0u64);
+        while i < start + max && b[i].wrapping_sub(b'0') <= 9 {
+            v = v * 10 + u64::from(b[i] - b'0');
+            i += 1;
+        }
+        (i > start && i < start + max && b[i] == end).then_some((v, i + 1))
+    };
+    let (t, i) = field(0, 18, d)?;
+    let (x, i) = field(i, 6, d)?;
+    let (y, i) = field(i, 6, d)?;
+    let p = match b[i] {
+        b'0' => -1,
+        b'1' => 1,
+        _ => return None,
+    };
+    let i = i + 1 + usize::from(b[i + 1] == b'\r');
+    if b[i] != b'\n' {
+        return None;
+    }
+    Some(((t as i64, u16::try_from(x).ok()?, u16::try_from(y).ok()?, p), pos + i + 1))
 }
 
 const POW10: [u64; 19] = {
@@ -645,14 +706,26 @@ impl TextDecoder {
             height: self.height,
             require_sorted: self.require_sorted,
         };
+        // Each piece parses straight into the output, one slot per line (counted with SIMD memchr);
+        // slots left by blank and comment lines are closed up afterwards.
         let pieces = split_at_lines(data, 4 * rayon::current_num_threads());
-        let chunks: Vec<Chunk> = pieces.par_iter().map(|p| parser.parse_chunk(p)).collect();
-        for c in &chunks {
+        let slots: Vec<usize> = pieces
+            .par_iter()
+            .map(|p| memchr::memchr_iter(b'\n', p).count() + usize::from(!p.ends_with(b"\n")))
+            .collect();
+        let old = out.append_zeroed(slots.iter().sum());
+        let parts = out.split_mut(old, slots.iter().copied());
+        let chunks: Vec<Chunk> =
+            pieces.par_iter().zip(parts).map(|(p, part)| parser.parse_chunk(p, part)).collect();
+        let (mut slot, mut end) = (old, old);
+        for (c, n) in chunks.iter().zip(&slots) {
             if let Some((line, msg)) = &c.error {
+                out.truncate(old);
                 return Err(Error::format(&self.path, format!("line {}", self.lines + line), msg));
             }
-            if let (true, Some(last), Some(&t0)) = (self.require_sorted, self.last, c.events.t.first()) {
+            if let (true, Some(last), Some(t0)) = (self.require_sorted, self.last, c.first_t) {
                 if t0 < last {
+                    out.truncate(old);
                     return Err(Error::format(
                         &self.path,
                         format!("line {}", self.lines + c.first_event_line),
@@ -660,12 +733,18 @@ impl TextDecoder {
                     ));
                 }
             }
-            if let Some(&t) = c.events.t.last() {
-                self.last = Some(t);
-            }
+            self.last = c.last_t.or(self.last);
             self.lines += c.lines;
+            if slot != end {
+                out.t.copy_within(slot..slot + c.events, end);
+                out.x.copy_within(slot..slot + c.events, end);
+                out.y.copy_within(slot..slot + c.events, end);
+                out.p.copy_within(slot..slot + c.events, end);
+            }
+            end += c.events;
+            slot += n;
         }
-        out.append_all(chunks.iter().map(|c| &c.events));
+        out.truncate(end);
         Ok(())
     }
 }
@@ -845,10 +924,33 @@ mod tests {
         }
     }
 
+    /// Blank and comment lines leave output slots unused; they are closed up across pieces.
+    #[test]
+    fn blank_and_comment_lines_between_pieces() {
+        let mut text = String::from("t,x,y,p\n");
+        for i in 0..60_000 {
+            text.push_str(&format!("{i},{},{},{}\n", i % 640, i % 480, i % 2));
+            if i % 7_001 == 0 {
+                text.push_str("# comment\n\n  \r\n");
+            }
+        }
+        text.push_str("60000,1,2,1");
+        for threads in [1, 3] {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let ev = pool.install(|| read(&text, &TextOptions::default()).unwrap());
+            assert_eq!(ev.t, (0..=60_000).collect::<Vec<i64>>(), "{threads} threads");
+            assert_eq!((ev.x[60_000], ev.y[59_999], ev.p[3]), (1, 59_999 % 480, 1));
+        }
+    }
+
     #[test]
     fn fast_path_agrees_with_general_parser() {
         let lines = [
             "12,3,4,1",
+            "12345678,640,4,0",
+            "123456789012345,1,65535,1\r",
+            "1234567890123456,1,2,1",
+            "123456789012345678,1,2,1",
             "0.0000005,3,4,0",
             "1.25,65535,0,-1",
             "7,65536,0,1",
@@ -879,6 +981,10 @@ mod tests {
             };
             for line in lines {
                 let general = parser.parse_line(strip_cr(line.as_bytes())).ok();
+                let padded = format!("{line}\n{}", " ".repeat(PLAIN_WINDOW));
+                if let (TimeUnit::Us, Some((ev, next))) = (unit, plain_line(padded.as_bytes(), 0, b',')) {
+                    assert_eq!((Some(ev), next), (general, line.len() + 1), "{line:?} plain");
+                }
                 if let Some((ev, next)) = parser.fast_line(line.as_bytes(), 0) {
                     assert_eq!((Some(ev), next), (general, line.len()), "{line:?} in {unit:?}");
                 }

@@ -1,4 +1,5 @@
-//! Bindings for `crate::events`: validation, the streaming reader, format detection and encoders.
+//! Bindings for `crate::events`: validation, the streaming reader, format detection, encoders and
+//! the camera-format writer.
 
 use numpy::{IntoPyArray, PyArray1, PyReadonlyArray1};
 use pyo3::exceptions::{PyOSError, PyValueError};
@@ -6,13 +7,11 @@ use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyDict};
 
 use crate::error::Error;
-use crate::events::aedat4::{encode_aedat4, Aedat4Compression};
 use crate::events::detect::{detect_file, Format};
-use crate::events::evt2::encode_evt2;
-use crate::events::evt3::encode_evt3;
 use crate::events::npy::{encode_npy_rows, npy_header, NpyStyle};
 use crate::events::reader::{BatchCheck, EventReader, ReadOptions};
 use crate::events::text::{encode_text, Delimiter, Role, TextOptions, TextStyle, TimeUnit};
+use crate::events::writer::CameraWriter;
 use crate::events::{Events, EventsView};
 
 /// Convert a core error into the matching Python exception.
@@ -305,36 +304,52 @@ fn encode_npy_data<'py>(
     Ok(py.detach(|| encode_npy_rows(v, style)).into_pyarray(py))
 }
 
-/// Events per AEDAT 4 packet written by [`encode_camera`] (a few ms of a busy sensor, as DV writes).
-const AEDAT4_PACKET_EVENTS: usize = 4096;
+/// A camera-format file (`evt2`, `evt3`, `aedat4`/`aedat4-lz4`, `aedat4-zstd`, `aedat4-none`) written
+/// batch by batch in bounded memory. Write to a temporary path and rename it after `close`; `name`
+/// (default `path`) is what errors call the output.
+#[pyclass(name = "CameraWriter", module = "evgs._core")]
+pub struct PyCameraWriter {
+    inner: Option<CameraWriter>,
+}
 
-/// A complete camera file (`evt2`, `evt3`, `aedat4-lz4`, `aedat4-zstd`, `aedat4`) for the events.
-#[pyfunction]
-#[allow(clippy::too_many_arguments)]
-fn encode_camera<'py>(
-    py: Python<'py>,
-    format: &str,
-    t: PyReadonlyArray1<'py, i64>,
-    x: PyReadonlyArray1<'py, u16>,
-    y: PyReadonlyArray1<'py, u16>,
-    p: PyReadonlyArray1<'py, i8>,
-    width: u32,
-    height: u32,
-) -> PyResult<Bound<'py, PyArray1<u8>>> {
-    let v = view(&t, &x, &y, &p, width, height)?;
-    let aedat = match format {
-        "evt2" | "evt3" => None,
-        "aedat4" => Some(Aedat4Compression::None),
-        "aedat4-lz4" => Some(Aedat4Compression::Lz4),
-        "aedat4-zstd" => Some(Aedat4Compression::Zstd),
-        _ => return Err(PyValueError::new_err(format!("no encoder for {format:?}"))),
-    };
-    let bytes = py.detach(|| match (format, aedat) {
-        ("evt2", _) => encode_evt2(v),
-        ("evt3", _) => encode_evt3(v),
-        (_, c) => encode_aedat4(v, c.unwrap_or(Aedat4Compression::None), AEDAT4_PACKET_EVENTS),
-    });
-    Ok(bytes.into_pyarray(py))
+#[pymethods]
+impl PyCameraWriter {
+    #[new]
+    #[pyo3(signature = (path, format, width=0, height=0, *, name=None))]
+    fn new(
+        py: Python<'_>,
+        path: &str,
+        format: &str,
+        width: u32,
+        height: u32,
+        name: Option<&str>,
+    ) -> PyResult<Self> {
+        let name = name.unwrap_or(path);
+        let inner =
+            py.detach(|| CameraWriter::create(path, name, format, width, height)).map_err(to_py_err)?;
+        Ok(PyCameraWriter { inner: Some(inner) })
+    }
+
+    /// Encode and write the stream's next events; ValueError (naming the event's index in the
+    /// stream) for unsorted times or coordinates that do not fit.
+    fn write(
+        &mut self,
+        py: Python<'_>,
+        t: PyReadonlyArray1<'_, i64>,
+        x: PyReadonlyArray1<'_, u16>,
+        y: PyReadonlyArray1<'_, u16>,
+        p: PyReadonlyArray1<'_, i8>,
+    ) -> PyResult<()> {
+        let v = view(&t, &x, &y, &p, 0, 0)?;
+        let inner = self.inner.as_mut().ok_or_else(|| PyValueError::new_err("CameraWriter is closed"))?;
+        py.detach(|| inner.write(v)).map_err(to_py_err)
+    }
+
+    /// Write what is pending and flush the file to disk.
+    fn close(&mut self, py: Python<'_>) -> PyResult<()> {
+        let inner = self.inner.take().ok_or_else(|| PyValueError::new_err("CameraWriter is closed"))?;
+        py.detach(|| inner.finish()).map_err(to_py_err)
+    }
 }
 
 pub(crate) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
@@ -343,8 +358,8 @@ pub(crate) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(encode_text_bytes, m)?)?;
     m.add_function(wrap_pyfunction!(encode_npy_header, m)?)?;
     m.add_function(wrap_pyfunction!(encode_npy_data, m)?)?;
-    m.add_function(wrap_pyfunction!(encode_camera, m)?)?;
     m.add_class::<PyEventReader>()?;
     m.add_class::<PyBatchCheck>()?;
+    m.add_class::<PyCameraWriter>()?;
     Ok(())
 }

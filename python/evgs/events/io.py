@@ -339,8 +339,9 @@ _PY_SOURCES: dict[str, type[_PySource]] = {"npz": _NpzSource, "hdf5": _Hdf5Sourc
 class EventWriter:
     """Write event batches to ``path`` atomically: the output appears only when ``close`` succeeds.
 
-    Use as a context manager; an exception inside the block leaves no file behind. Camera formats
-    (EVT 2.0/3.0, AEDAT 4) are encoded from the whole stream at close, so they hold it in memory.
+    Use as a context manager; an exception inside the block leaves no file behind. Every format is
+    written batch by batch in bounded memory; camera formats (EVT 2.0/3.0, AEDAT 4) take their header's
+    sensor size from the first batch and need time-sorted events (an error names the first that is not).
     """
 
     def __init__(self, path: str | Path, fmt: str | None = None, width: int = 0, height: int = 0) -> None:
@@ -355,8 +356,8 @@ class EventWriter:
         self.count = 0
         self._atomic = atomic_path(self.path)
         self._tmp = self._atomic.__enter__()
-        self._parts: list[EventArray] = []
         self._nparts = 0
+        self._camera: _core.CameraWriter | None = None
         self._file = None
         self._h5 = None
         self._tmpdir: str | None = None
@@ -402,8 +403,8 @@ class EventWriter:
         elif self._tmpdir is not None:
             write_parquet(Path(self._tmpdir) / f"{self._nparts:06d}.parquet", ev)
             self._nparts += 1
-        else:
-            self._parts.append(ev)
+        elif n:
+            self._camera_writer(ev).write(ev.t, ev.x, ev.y, ev.p)
         self.count += n
 
     def close(self) -> None:
@@ -441,10 +442,17 @@ class EventWriter:
             else:
                 write_parquet(self._tmp, _concat([], self.width, self.height))
         else:
-            ev = _concat(self._parts, self.width, self.height)
-            self._check_time_range(ev)
-            fmt = {"aedat4": "aedat4-lz4"}.get(self.format, self.format)
-            _core.encode_camera(fmt, ev.t, ev.x, ev.y, ev.p, self.width, self.height).tofile(self._tmp)
+            self._camera_writer(None).close()
+
+    def _camera_writer(self, first: EventArray | None) -> _core.CameraWriter:
+        """The camera-format writer, created (header written) at the first batch or at close."""
+        if self._camera is None:
+            if first is not None:
+                self._check_time_range(first)
+            self._camera = _core.CameraWriter(
+                str(self._tmp), self.format, self.width, self.height, name=str(self.path)
+            )
+        return self._camera
 
     def _check_time_range(self, ev: EventArray) -> None:
         """EVT counters carry 34 (2.0) or 24 (3.0) bits of µs and a decoder rebuilds absolute time from
@@ -461,6 +469,7 @@ class EventWriter:
             )
 
     def _cleanup(self) -> None:
+        self._camera = None  # closes the file (the temporary is removed by atomic_path)
         if self._file is not None and not self._file.closed:
             self._file.close()
         if self._h5 is not None and self._h5.id.valid:
