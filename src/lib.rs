@@ -11,6 +11,8 @@ pub mod sim;
 
 #[cfg(feature = "python")]
 mod py;
+#[cfg(test)]
+mod test_util;
 
 pub use error::{Error, Result};
 pub use events::Events;

@@ -433,14 +433,7 @@ impl EventReader {
 mod tests {
     use super::*;
     use crate::events::npy::{encode_npy_rows, npy_header, NpyStyle};
-
-    fn tmp(name: &str, bytes: &[u8]) -> String {
-        let dir = std::env::temp_dir().join(format!("evgs-reader-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let p = dir.join(name);
-        std::fs::write(&p, bytes).unwrap();
-        p.to_string_lossy().into_owned()
-    }
+    use crate::test_util::TempDir;
 
     fn sample(n: usize) -> Events {
         let mut ev = Events::with_capacity(n, 64, 48);
@@ -452,13 +445,14 @@ mod tests {
 
     #[test]
     fn batches_equal_whole_read_for_every_rust_format() {
+        let dir = TempDir::new("reader");
         let ev = sample(100_003);
         let mut npy = npy_header(ev.len() as u64, NpyStyle::Structured);
         npy.extend(encode_npy_rows(ev.view(), NpyStyle::Structured));
         let files = [
-            (tmp("a.npy", &npy), Format::Npy),
-            (tmp("a.raw", &crate::events::evt2::encode_evt2(ev.view()).unwrap()), Format::Evt2),
-            (tmp("b.raw", &crate::events::evt3::encode_evt3(ev.view()).unwrap()), Format::Evt3),
+            (dir.write("a.npy", &npy), Format::Npy),
+            (dir.write("a.raw", &crate::events::evt2::encode_evt2(ev.view()).unwrap()), Format::Evt2),
+            (dir.write("b.raw", &crate::events::evt3::encode_evt3(ev.view()).unwrap()), Format::Evt3),
         ];
         let opts = ReadOptions {
             text: TextOptions { width: 64, height: 48, ..Default::default() },
@@ -481,16 +475,17 @@ mod tests {
     /// copying, shorter ones placed in the gap; the result is the same for every format.
     #[test]
     fn small_blocks_and_gaps_read_the_same() {
+        let dir = TempDir::new("reader");
         use crate::events::aedat4::{encode_aedat4, Aedat4Compression};
         use crate::events::text::{encode_text, TextStyle, TimeUnit};
         // Larger than the 1 MiB head read at open, so blocks are read.
         let ev = sample(300_000);
         let style = TextStyle { delimiter: b',', time_unit: TimeUnit::Us, header: true, zero_one: true };
         let files = [
-            tmp("s.csv", &encode_text(ev.view(), style)),
-            tmp("s2.raw", &crate::events::evt2::encode_evt2(ev.view()).unwrap()),
-            tmp("s3.raw", &crate::events::evt3::encode_evt3(ev.view()).unwrap()),
-            tmp("s.aedat4", &encode_aedat4(ev.view(), Aedat4Compression::None, 300).unwrap()),
+            dir.write("s.csv", &encode_text(ev.view(), style)),
+            dir.write("s2.raw", &crate::events::evt2::encode_evt2(ev.view()).unwrap()),
+            dir.write("s3.raw", &crate::events::evt3::encode_evt3(ev.view()).unwrap()),
+            dir.write("s.aedat4", &encode_aedat4(ev.view(), Aedat4Compression::None, 300).unwrap()),
         ];
         let opts = ReadOptions {
             text: TextOptions { width: 64, height: 48, ..Default::default() },
@@ -508,11 +503,12 @@ mod tests {
 
     #[test]
     fn outside_and_unsorted_are_errors_or_counted() {
+        let dir = TempDir::new("reader");
         let mut ev = sample(10);
         ev.x[4] = 70;
         let mut npy = npy_header(10, NpyStyle::Structured);
         npy.extend(encode_npy_rows(ev.view(), NpyStyle::Structured));
-        let path = tmp("o.npy", &npy);
+        let path = dir.write("o.npy", &npy);
         let mut opts = ReadOptions {
             text: TextOptions { width: 64, height: 48, ..Default::default() },
             ..Default::default()
@@ -527,7 +523,7 @@ mod tests {
         ev.t[6] = 0;
         let mut npy = npy_header(10, NpyStyle::Structured);
         npy.extend(encode_npy_rows(ev.view(), NpyStyle::Structured));
-        let path = tmp("u.npy", &npy);
+        let path = dir.write("u.npy", &npy);
         opts.text.require_sorted = true;
         let e = EventReader::open(&path, None, &opts).unwrap().read_all().unwrap_err().to_string();
         assert!(e.contains("event 6: time goes backwards"), "{e}");
@@ -559,15 +555,16 @@ mod tests {
     /// drop_outside applies to the camera formats too (their decoders would otherwise fail first).
     #[test]
     fn camera_formats_drop_and_count_outside_events() {
+        let dir = TempDir::new("reader");
         use crate::events::aedat4::{encode_aedat4, Aedat4Compression};
         let mut ev = sample(10);
         ev.x[4] = 70;
         // Written without a sensor size (the encoders refuse events outside it); read with one.
         let ev = EventsView { width: 0, height: 0, ..ev.view() };
         let files = [
-            tmp("d2.raw", &crate::events::evt2::encode_evt2(ev).unwrap()),
-            tmp("d3.raw", &crate::events::evt3::encode_evt3(ev).unwrap()),
-            tmp("d.aedat4", &encode_aedat4(ev, Aedat4Compression::Lz4, 4).unwrap()),
+            dir.write("d2.raw", &crate::events::evt2::encode_evt2(ev).unwrap()),
+            dir.write("d3.raw", &crate::events::evt3::encode_evt3(ev).unwrap()),
+            dir.write("d.aedat4", &encode_aedat4(ev, Aedat4Compression::Lz4, 4).unwrap()),
         ];
         for path in files {
             let mut opts = ReadOptions {

@@ -100,20 +100,16 @@ mod tests {
     use super::*;
     use crate::events::raw_header::feed::random_events;
     use crate::events::reader::{EventReader, ReadOptions};
-
-    fn tmp(name: &str) -> String {
-        let dir = std::env::temp_dir().join(format!("evgs-writer-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        dir.join(name).to_string_lossy().into_owned()
-    }
+    use crate::test_util::TempDir;
 
     /// Batches of any size (also smaller than a packet, and empty) give a file that reads back as
     /// the whole stream, for every camera format.
     #[test]
     fn batch_by_batch_round_trips() {
+        let dir = TempDir::new("writer");
         let ev = random_events(30_000, 5, 1_000, 3, 640, 480);
         for format in ["evt2", "evt3", "aedat4", "aedat4-zstd", "aedat4-none"] {
-            let path = tmp(&format!("rt-{format}"));
+            let path = dir.path(&format!("rt-{format}"));
             let mut w = CameraWriter::create(&path, "out", format, 640, 480).unwrap();
             let mut from = 0;
             for size in [0, 1, 4095, 4097, 7, 10_000].into_iter().cycle() {
@@ -140,10 +136,11 @@ mod tests {
 
     #[test]
     fn unsorted_negative_and_outside_events_are_errors_naming_the_event() {
+        let dir = TempDir::new("writer");
         let ev = random_events(100, 7, 0, 3, 640, 480);
         for format in ["evt2", "evt3", "aedat4"] {
             let mut w =
-                CameraWriter::create(&tmp(&format!("bad-{format}")), "out", format, 640, 480).unwrap();
+                CameraWriter::create(&dir.path(&format!("bad-{format}")), "out", format, 640, 480).unwrap();
             w.write(ev.view()).unwrap();
             let mut next = ev.clone();
             next.t.iter_mut().for_each(|t| *t += 1000);
@@ -151,19 +148,20 @@ mod tests {
             let e = w.write(next.view()).unwrap_err().to_string();
             assert!(e.contains("event 110") && e.contains("time-sorted"), "{format}: {e}");
             let mut w =
-                CameraWriter::create(&tmp(&format!("bad2-{format}")), "out", format, 640, 480).unwrap();
+                CameraWriter::create(&dir.path(&format!("bad2-{format}")), "out", format, 640, 480).unwrap();
             w.write(ev.view()).unwrap();
             let e = w.write(ev.view()).unwrap_err().to_string();
             assert!(e.contains("event 100") && e.contains("before the previous"), "{format}: {e}");
             let mut outside = ev.clone();
             outside.x[42] = 640;
-            let e = CameraWriter::create(&tmp("o"), "out", format, 640, 480).unwrap().write(outside.view());
+            let e =
+                CameraWriter::create(&dir.path("o"), "out", format, 640, 480).unwrap().write(outside.view());
             assert!(e.unwrap_err().to_string().contains("event 42: (640, "), "{format}");
         }
         let mut negative = ev.clone();
         negative.t[0] = -1;
-        let e = CameraWriter::create(&tmp("n"), "out", "evt3", 0, 0).unwrap().write(negative.view());
+        let e = CameraWriter::create(&dir.path("n"), "out", "evt3", 0, 0).unwrap().write(negative.view());
         assert!(e.unwrap_err().to_string().contains("event 0: time -1 µs is negative"));
-        assert!(CameraWriter::create(&tmp("x"), "out", "evt4", 0, 0).is_err());
+        assert!(CameraWriter::create(&dir.path("x"), "out", "evt4", 0, 0).is_err());
     }
 }
