@@ -309,6 +309,29 @@ mod tests {
     use super::*;
 
     #[test]
+    fn spare_parts_fill_after_existing_events_and_large_columns_grow() {
+        let mut ev = Events::with_capacity(0, 0, 0);
+        ev.push(-1, 9, 9, -1);
+        // Large enough for the huge-page advice path (t column > 4 MiB).
+        let counts = [3, 0, 700_000];
+        let parts = ev.spare_parts(counts);
+        assert_eq!(parts.iter().map(|c| c.t.len()).collect::<Vec<_>>(), counts);
+        parts.into_par_iter().enumerate().for_each(|(j, mut part)| {
+            for k in 0..part.t.len() {
+                part.set(k, (j * 10 + k) as i64, k as u16, j as u16, 1);
+            }
+        });
+        // SAFETY: every part was written whole above.
+        unsafe { ev.assume_filled(700_003) };
+        assert_eq!(ev.len(), 700_004);
+        assert_eq!((ev.t[0], ev.t[1], ev.t[3], ev.t[4], ev.y[4]), (-1, 0, 2, 20, 2));
+        assert_eq!((ev.t[700_003], ev.x[700_003]), (20 + 699_999, (699_999 % 65_536) as u16));
+        let mut all = Events::default();
+        all.append_all([&ev, &ev]);
+        assert_eq!((all.len(), all.t[700_004], all.p[1_400_007]), (1_400_008, -1, 1));
+    }
+
+    #[test]
     fn validate_catches_bad_polarity_and_coordinates() {
         let mut ev = Events::with_capacity(2, 4, 4);
         ev.push(0, 1, 1, 1);
