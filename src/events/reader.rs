@@ -23,6 +23,8 @@ use crate::events::{reserve_huge, Decoder, Events, EventsView};
 /// mapped; decoders write straight into reserved output columns ([`Events::spare_parts`]), so blocks
 /// cost no serial copies, and the next block is read while the current one decodes.
 const BLOCK: usize = 16 << 20;
+/// The first block of [`EventReader::read_all`], which estimates the output size.
+const PROBE_BLOCK: usize = 1 << 20;
 /// Room kept in front of each block for the previous block's unconsumed tail (a partial line, word
 /// or packet), so the two become contiguous without moving the block. Larger tails are copied.
 const GAP: usize = 1 << 20;
@@ -422,9 +424,14 @@ impl EventReader {
     /// Every remaining event.
     pub fn read_all(&mut self) -> Result<Events> {
         if !self.finished {
-            self.fill()?;
-            // Reserve the whole output once, from the first block's events per byte (plus 1/8): growing
-            // block by block would let `realloc` copy the columns into fresh pages again and again.
+            // Decode a small first block to learn the events per byte, then reserve the whole output
+            // once (plus 1/8): growing block by block would let `realloc` copy the columns into fresh
+            // pages again and again.
+            let probe = self.block.min(PROBE_BLOCK);
+            let block = std::mem::replace(&mut self.block, probe);
+            let first = self.fill();
+            self.block = block;
+            first?;
             let done = self.bytes_done().max(1);
             let rest = self.file_size.saturating_sub(done);
             let est = u64::try_from(self.pending.len() as u128 * u128::from(rest) / u128::from(done));
