@@ -302,28 +302,30 @@ impl Aedat4Decoder {
     /// branch-free (a bad coordinate only sets a flag); the offending event is looked up afterwards.
     fn fill(&self, offset: u64, structs: &[u8], out: ColumnsMut<'_>) -> Result<()> {
         let ColumnsMut { t, x, y, p: pol } = out;
+        // Every slot is written: `unpack_all` relies on this to append them.
+        assert_eq!(structs.len(), EVENT_SIZE * t.len(), "AEDAT 4 packet and slots disagree");
         // Coordinates are i16; seen as u16 a negative one is ≥ 2^15, so one unsigned compare suffices.
         let xlim = if self.width == 0 { 1 << 15 } else { self.width };
         let ylim = if self.height == 0 { 1 << 15 } else { self.height };
+        let coords = |e: &[u8]| (u16::from_le_bytes([e[8], e[9]]), u16::from_le_bytes([e[10], e[11]]));
         let mut bad = false;
         for ((e, t), ((x, y), pol)) in
             structs.chunks_exact(EVENT_SIZE).zip(t).zip(x.iter_mut().zip(y.iter_mut()).zip(pol.iter_mut()))
         {
-            let ex = u16::from_le_bytes([e[8], e[9]]);
-            let ey = u16::from_le_bytes([e[10], e[11]]);
+            let (ex, ey) = coords(e);
             bad |= (u32::from(ex) >= xlim) | (u32::from(ey) >= ylim);
-            *t = i64::from_le_bytes(e[0..8].try_into().unwrap());
-            *x = ex;
-            *y = ey;
-            *pol = if e[12] != 0 { 1 } else { -1 };
+            t.write(i64::from_le_bytes(e[0..8].try_into().unwrap()));
+            x.write(ex);
+            y.write(ey);
+            pol.write(if e[12] != 0 { 1 } else { -1 });
         }
         if !bad {
             return Ok(());
         }
-        let (j, (ex, ey)) = x
-            .iter()
-            .zip(y.iter())
-            .map(|(&ex, &ey)| (ex as i16, ey as i16))
+        let (j, (ex, ey)) = structs
+            .chunks_exact(EVENT_SIZE)
+            .map(coords)
+            .map(|(ex, ey)| (ex as i16, ey as i16))
             .enumerate()
             .find(|&(_, (ex, ey))| ex < 0 || ey < 0 || ex as u32 >= xlim || ey as u32 >= ylim)
             .expect("a flagged coordinate exists");
@@ -460,11 +462,10 @@ impl Aedat4Decoder {
     /// its worker's scratch buffer and is copied straight to its final place. Otherwise (or if a
     /// count turns out different) the packets decompress into buffers of their own first.
     fn unpack_all(&self, packets: &[(u64, &[u8])], out: &mut Events) -> Result<()> {
-        let old = out.len();
         let counts: Option<Vec<usize>> = packets.iter().map(|&(_, p)| self.expected_count(p)).collect();
         if let Some(counts) = counts {
-            out.append_zeroed(counts.iter().sum());
-            let parts = out.split_mut(old, counts);
+            let total = counts.iter().sum();
+            let parts = out.spare_parts(counts);
             let done: Vec<Result<bool>> = packets
                 .par_iter()
                 .zip(parts)
@@ -477,12 +478,13 @@ impl Aedat4Decoder {
                 })
                 .collect();
             match done.into_iter().find(|r| !matches!(r, Ok(true))) {
-                None => return Ok(()),
-                Some(Err(e)) => {
-                    out.truncate(old);
-                    return Err(e);
+                None => {
+                    // SAFETY: every packet filled its part whole (`fill` asserts it).
+                    unsafe { out.assume_filled(total) };
+                    return Ok(());
                 }
-                Some(Ok(_)) => out.truncate(old),
+                Some(Err(e)) => return Err(e),
+                Some(Ok(_)) => {}
             }
         }
         let unpacked: Vec<Result<Vec<u8>>> = packets
@@ -493,8 +495,8 @@ impl Aedat4Decoder {
             .collect();
         let ok = unpacked.iter().take_while(|r| r.is_ok()).count();
         let structs: Vec<&[u8]> = unpacked[..ok].iter().flatten().map(Vec::as_slice).collect();
-        out.append_zeroed(structs.iter().map(|s| s.len() / EVENT_SIZE).sum());
-        let parts = out.split_mut(old, structs.iter().map(|s| s.len() / EVENT_SIZE));
+        let total = structs.iter().map(|s| s.len() / EVENT_SIZE).sum();
+        let parts = out.spare_parts(structs.iter().map(|s| s.len() / EVENT_SIZE));
         let filled: Vec<Result<()>> = structs
             .par_iter()
             .zip(packets)
@@ -503,9 +505,10 @@ impl Aedat4Decoder {
             .collect();
         let first_error = filled.into_iter().find_map(|r| r.err());
         if let Some(e) = first_error.or_else(|| unpacked.into_iter().nth(ok).and_then(|r| r.err())) {
-            out.truncate(old);
             return Err(e);
         }
+        // SAFETY: every packet filled its part whole (`fill` asserts it).
+        unsafe { out.assume_filled(total) };
         Ok(())
     }
 }

@@ -158,7 +158,7 @@ impl Evt2Decoder {
         &self,
         words: &[u8],
         mut st: State,
-        out: ColumnsMut<'_>,
+        mut out: ColumnsMut<'_>,
     ) -> std::result::Result<(), (usize, u32, u32)> {
         let xlim = if self.width == 0 { MAX_COORD } else { self.width };
         let ylim = if self.height == 0 { MAX_COORD } else { self.height };
@@ -172,17 +172,15 @@ impl Evt2Decoder {
                 if x >= xlim || y >= ylim {
                     return Err((i, x, y));
                 }
-                out.t[k] = t0 + i64::from((w >> 22) & 0x3F);
-                out.x[k] = x as u16;
-                out.y[k] = y as u16;
-                out.p[k] = kind as i8 * 2 - 1;
+                out.set(k, t0 + i64::from((w >> 22) & 0x3F), x as u16, y as u16, kind as i8 * 2 - 1);
                 k += 1;
             } else if kind == TIME_HIGH {
                 st.time_high(w & 0x0FFF_FFFF, self.time_shift);
                 t0 = st.base - st.shift;
             }
         }
-        debug_assert_eq!(k, out.t.len());
+        // Every slot written: `Decoder::decode` relies on this to append them.
+        assert_eq!(k, out.t.len(), "EVT 2.0 first and second pass disagree");
         Ok(())
     }
 }
@@ -217,19 +215,20 @@ impl Decoder for Evt2Decoder {
                 st.base += s.wraps * WRAP + (i64::from(s.last_high) - i64::from(raw0)) * 64;
             }
         }
-        let old = out.append_zeroed(counts.iter().sum());
-        let parts = out.split_mut(old, counts);
+        let total = counts.iter().sum();
+        let parts = out.spare_parts(counts);
         let filled: Vec<_> =
             chunks.par_iter().zip(starts).zip(parts).map(|((c, st), part)| self.fill(c, st, part)).collect();
         let first_error = filled.iter().enumerate().find_map(|(c, r)| r.err().map(|e| (c, e)));
         if let Some((c, (i, x, y))) = first_error {
-            out.truncate(old);
             return Err(Error::format(
                 &self.path,
                 format!("byte offset {}", offset + 4 * (c * self.chunk_words + i) as u64),
                 format!("event ({x}, {y}) outside the {}x{} sensor", self.width, self.height),
             ));
         }
+        // SAFETY: every chunk filled its part whole (`fill` asserts it) and the parts are contiguous.
+        unsafe { out.assume_filled(total) };
         (self.st, self.stats) = (st, stats);
         Ok(n)
     }

@@ -393,10 +393,10 @@ impl Evt3Decoder {
             let v = u32::from(w & 0x7FF);
             // Every word stores a candidate event; only an ADDR_X on a valid row keeps it.
             let keep = (kind == ADDR_X) & st.y_valid;
-            t[k] = tt;
-            x[k] = v as u16;
-            y[k] = st.y as u16;
-            p[k] = if w & 0x800 != 0 { 1 } else { -1 };
+            t[k].write(tt);
+            x[k].write(v as u16);
+            y[k].write(st.y as u16);
+            p[k].write(if w & 0x800 != 0 { 1 } else { -1 });
             bad |= keep & ((v >= xlim) | (st.y >= ylim));
             k += usize::from(keep);
             let is_row = kind == ADDR_Y;
@@ -412,10 +412,10 @@ impl Evt3Decoder {
                     if st.y_valid && mask != 0 {
                         bad |= (st.base_x + 31 - mask.leading_zeros() >= xlim) | (st.y >= ylim);
                         while mask != 0 {
-                            t[k] = tt;
-                            x[k] = (st.base_x + mask.trailing_zeros()) as u16;
-                            y[k] = st.y as u16;
-                            p[k] = st.pol;
+                            t[k].write(tt);
+                            x[k].write((st.base_x + mask.trailing_zeros()) as u16);
+                            y[k].write(st.y as u16);
+                            p[k].write(st.pol);
                             k += 1;
                             mask &= mask - 1;
                         }
@@ -433,7 +433,8 @@ impl Evt3Decoder {
                 _ => {}
             }
         }
-        debug_assert_eq!(k, len);
+        // Every slot written: `Decoder::decode` relies on this to append them.
+        assert_eq!(k, len, "EVT 3.0 first and second pass disagree");
         bad
     }
 }
@@ -469,8 +470,8 @@ impl Decoder for Evt3Decoder {
             plans.push(Plan { head: from..heads.len(), sync, state, events });
         }
         let sizes: Vec<usize> = plans.iter().flat_map(|p| [p.head.len(), p.events]).collect();
-        let old = out.append_zeroed(sizes.iter().sum());
-        let mut parts = out.split_mut(old, sizes).into_iter();
+        let total = sizes.iter().sum();
+        let mut parts = out.spare_parts(sizes).into_iter();
         let jobs: Vec<_> = plans
             .iter()
             .zip(&chunks)
@@ -479,11 +480,7 @@ impl Decoder for Evt3Decoder {
         let bad: Vec<bool> = jobs
             .into_par_iter()
             .map(|(plan, chunk, head, rest)| {
-                let r = plan.head.clone();
-                head.t.copy_from_slice(&heads.t[r.clone()]);
-                head.x.copy_from_slice(&heads.x[r.clone()]);
-                head.y.copy_from_slice(&heads.y[r.clone()]);
-                head.p.copy_from_slice(&heads.p[r]);
+                head.copy_from(heads.view(), plan.head.clone());
                 self.fill(&chunk[2 * plan.sync..], plan.state, rest)
             })
             .collect();
@@ -496,13 +493,15 @@ impl Decoder for Evt3Decoder {
             Some((c, plan.sync + i, x, y))
         });
         if let Some((c, i, x, y)) = error {
-            out.truncate(old);
             return Err(Error::format(
                 &self.path,
                 format!("byte offset {}", offset + 2 * (c * self.chunk_words + i) as u64),
                 format!("event ({x}, {y}) outside the {}x{} sensor", self.width, self.height),
             ));
         }
+        // SAFETY: each head part is a whole copy and each rest part is filled whole (`fill` asserts
+        // it); together they are contiguous.
+        unsafe { out.assume_filled(total) };
         (self.st, self.stats) = (st, stats);
         Ok(n)
     }

@@ -14,6 +14,8 @@ pub mod undistort;
 pub mod window;
 pub mod writer;
 
+use std::mem::MaybeUninit;
+
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
@@ -74,33 +76,20 @@ impl Events {
         self.p.push(p);
     }
 
-    /// Append `n` zeroed events for a decoder to fill by index (in parallel); returns the old length.
+    /// Reserve room for `counts` more events and hand out the uninitialised column slices of
+    /// consecutive runs of `counts` events after the current end, for decoders to fill in parallel;
+    /// [`Events::assume_filled`] then appends them.
     ///
-    /// An empty stream without spare capacity gets fresh zeroed allocations (calloc: the kernel's zero
-    /// pages, so no memset and the page faults land on the threads that fill the columns); otherwise
-    /// the columns grow by zeroing in parallel (a serial resize would cost as much as decoding).
-    pub fn append_zeroed(&mut self, n: usize) -> usize {
-        fn grow<T: Copy + Default + Send + Sync>(v: &mut Vec<T>, n: usize) {
-            if v.is_empty() && v.capacity() < n {
-                *v = vec![T::default(); n];
-            } else {
-                v.par_extend(rayon::iter::repeat_n(T::default(), n));
-            }
-        }
-        let old = self.len();
-        grow(&mut self.t, n);
-        grow(&mut self.x, n);
-        grow(&mut self.y, n);
-        grow(&mut self.p, n);
-        old
-    }
-
-    /// Mutable column slices of consecutive runs of `counts` events starting at index `from`, for
-    /// filling disjoint parts of the output in parallel.
-    pub fn split_mut(&mut self, from: usize, counts: impl IntoIterator<Item = usize>) -> Vec<ColumnsMut<'_>> {
-        let (mut t, mut x, mut y, mut p) =
-            (&mut self.t[from..], &mut self.x[from..], &mut self.y[from..], &mut self.p[from..]);
-        let mut parts = Vec::new();
+    /// Nothing is zeroed: the fresh pages are faulted once, by the thread that writes them, and large
+    /// columns are advised as transparent huge pages (see [`reserve_huge`]).
+    pub fn spare_parts(&mut self, counts: impl IntoIterator<Item = usize>) -> Vec<ColumnsMut<'_>> {
+        let counts: Vec<usize> = counts.into_iter().collect();
+        let n = counts.iter().sum();
+        let mut t = reserve_huge(&mut self.t, n);
+        let mut x = reserve_huge(&mut self.x, n);
+        let mut y = reserve_huge(&mut self.y, n);
+        let mut p = reserve_huge(&mut self.p, n);
+        let mut parts = Vec::with_capacity(counts.len());
         for n in counts {
             let (t0, t1) = std::mem::take(&mut t).split_at_mut(n);
             let (x0, x1) = std::mem::take(&mut x).split_at_mut(n);
@@ -112,18 +101,52 @@ impl Events {
         parts
     }
 
+    /// Reserve room for at least `n` more events (see [`reserve_huge`]).
+    pub fn reserve(&mut self, n: usize) {
+        reserve_huge(&mut self.t, n);
+        reserve_huge(&mut self.x, n);
+        reserve_huge(&mut self.y, n);
+        reserve_huge(&mut self.p, n);
+    }
+
+    /// All spare (reserved, unused) slots of the columns, e.g. to close up gaps between filled runs.
+    pub fn spare_mut(&mut self) -> ColumnsMut<'_> {
+        ColumnsMut {
+            t: self.t.spare_capacity_mut(),
+            x: self.x.spare_capacity_mut(),
+            y: self.y.spare_capacity_mut(),
+            p: self.p.spare_capacity_mut(),
+        }
+    }
+
+    /// Append the first `n` spare slots as events.
+    ///
+    /// # Safety
+    /// Slots `0..n` of every column of [`Events::spare_parts`] / [`Events::spare_mut`] must have
+    /// been written.
+    pub unsafe fn assume_filled(&mut self, n: usize) {
+        let len = self.len() + n;
+        assert!(
+            len <= self.t.capacity().min(self.x.capacity()).min(self.y.capacity()).min(self.p.capacity())
+        );
+        // SAFETY: within capacity (checked) and initialised (the caller's contract).
+        unsafe {
+            self.t.set_len(len);
+            self.x.set_len(len);
+            self.y.set_len(len);
+            self.p.set_len(len);
+        }
+    }
+
     /// Append the events of `parts` in order, copying them in parallel (a serial gather would cost as
     /// much as the parallel decode that produced them).
     pub fn append_all<'a>(&mut self, parts: impl IntoIterator<Item = &'a Events>) {
         let parts: Vec<&Events> = parts.into_iter().collect();
-        let old = self.append_zeroed(parts.iter().map(|e| e.len()).sum());
-        let dest = self.split_mut(old, parts.iter().map(|e| e.len()));
-        parts.into_par_iter().zip(dest).for_each(|(src, dst)| {
-            dst.t.copy_from_slice(&src.t);
-            dst.x.copy_from_slice(&src.x);
-            dst.y.copy_from_slice(&src.y);
-            dst.p.copy_from_slice(&src.p);
-        });
+        let n = parts.iter().map(|e| e.len()).sum();
+        let dest = self.spare_parts(parts.iter().map(|e| e.len()));
+        parts.into_par_iter().zip(dest).for_each(|(src, dst)| dst.copy_from(src.view(), 0..src.len()));
+        // SAFETY: every part was copied whole, and the parts cover the first `n` spare slots.
+        unsafe { self.assume_filled(n) };
     }
 
     /// Drop events from index `len` on.
@@ -155,14 +178,75 @@ impl Events {
     }
 }
 
-/// Mutable slices of a run of events (see [`Events::split_mut`]).
+/// Uninitialised column slices of a run of events to be written (see [`Events::spare_parts`]).
 #[derive(Debug)]
 pub struct ColumnsMut<'a> {
-    pub t: &'a mut [i64],
-    pub x: &'a mut [u16],
-    pub y: &'a mut [u16],
-    pub p: &'a mut [i8],
+    pub t: &'a mut [MaybeUninit<i64>],
+    pub x: &'a mut [MaybeUninit<u16>],
+    pub y: &'a mut [MaybeUninit<u16>],
+    pub p: &'a mut [MaybeUninit<i8>],
 }
+
+impl ColumnsMut<'_> {
+    /// Write event `k`.
+    #[inline(always)]
+    pub fn set(&mut self, k: usize, t: i64, x: u16, y: u16, p: i8) {
+        self.t[k].write(t);
+        self.x[k].write(x);
+        self.y[k].write(y);
+        self.p[k].write(p);
+    }
+
+    /// Write events `range` of `src` to the start of these slices.
+    pub fn copy_from(self, src: EventsView<'_>, range: std::ops::Range<usize>) {
+        write_slice(self.t, &src.t[range.clone()]);
+        write_slice(self.x, &src.x[range.clone()]);
+        write_slice(self.y, &src.y[range.clone()]);
+        write_slice(self.p, &src.p[range]);
+    }
+}
+
+/// Copy `src` into the start of `dst` (a memcpy; `<[MaybeUninit<T>]>::write_copy_of_slice` needs a
+/// newer Rust than the crate's minimum).
+#[inline]
+pub fn write_slice<T: Copy>(dst: &mut [MaybeUninit<T>], src: &[T]) {
+    for (d, &s) in dst[..src.len()].iter_mut().zip(src) {
+        d.write(s);
+    }
+}
+
+/// Columns at least this large are advised as transparent huge pages: 512× fewer page faults.
+const HUGE_MIN_BYTES: usize = 4 << 20;
+
+/// Reserve room for `n` more elements in `v` and return exactly those `n` spare slots.
+///
+/// A large buffer is advised `MADV_HUGEPAGE` (on Linux; the 2 MiB-aligned interior, before the new
+/// pages are touched), so its pages fault in as huge pages where THP is in `madvise` mode. Growth
+/// goes through `realloc`, which for large blocks remaps the pages instead of copying them.
+pub fn reserve_huge<T>(v: &mut Vec<T>, n: usize) -> &mut [MaybeUninit<T>] {
+    let cap = v.capacity();
+    v.reserve(n);
+    let bytes = v.capacity() * std::mem::size_of::<T>();
+    if v.capacity() != cap && bytes >= HUGE_MIN_BYTES {
+        advise_huge(v.as_mut_ptr().cast(), bytes);
+    }
+    &mut v.spare_capacity_mut()[..n]
+}
+
+#[cfg(target_os = "linux")]
+fn advise_huge(ptr: *mut u8, bytes: usize) {
+    const HUGE: usize = 2 << 20;
+    let start = (ptr as usize).next_multiple_of(HUGE);
+    let end = (ptr as usize + bytes) / HUGE * HUGE;
+    if end > start {
+        // SAFETY: the range lies inside the allocation; MADV_HUGEPAGE only changes how its pages
+        // are backed, never their contents. A failure (THP disabled) just leaves normal pages.
+        unsafe { libc::madvise(start as *mut libc::c_void, end - start, libc::MADV_HUGEPAGE) };
+    }
+}
+
+#[cfg(not(target_os = "linux"))]
+fn advise_huge(_ptr: *mut u8, _bytes: usize) {}
 
 /// Borrowed event columns: an [`Events`] or four numpy arrays seen from Rust without copying.
 #[derive(Debug, Clone, Copy)]
@@ -223,6 +307,29 @@ impl EventsView<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn spare_parts_fill_after_existing_events_and_large_columns_grow() {
+        let mut ev = Events::with_capacity(0, 0, 0);
+        ev.push(-1, 9, 9, -1);
+        // Large enough for the huge-page advice path (t column > 4 MiB).
+        let counts = [3, 0, 700_000];
+        let parts = ev.spare_parts(counts);
+        assert_eq!(parts.iter().map(|c| c.t.len()).collect::<Vec<_>>(), counts);
+        parts.into_par_iter().enumerate().for_each(|(j, mut part)| {
+            for k in 0..part.t.len() {
+                part.set(k, (j * 10 + k) as i64, k as u16, j as u16, 1);
+            }
+        });
+        // SAFETY: every part was written whole above.
+        unsafe { ev.assume_filled(700_003) };
+        assert_eq!(ev.len(), 700_004);
+        assert_eq!((ev.t[0], ev.t[1], ev.t[3], ev.t[4], ev.y[4]), (-1, 0, 2, 20, 2));
+        assert_eq!((ev.t[700_003], ev.x[700_003]), (20 + 699_999, (699_999 % 65_536) as u16));
+        let mut all = Events::default();
+        all.append_all([&ev, &ev]);
+        assert_eq!((all.len(), all.t[700_004], all.p[1_400_007]), (1_400_008, -1, 1));
+    }
 
     #[test]
     fn validate_catches_bad_polarity_and_coordinates() {

@@ -6,11 +6,13 @@
 //! IncEventGS writes them) and a 1-D structured array whose field names say which is which.
 //! Float times are seconds, integer times microseconds, unless a unit is given.
 
+use std::mem::MaybeUninit;
+
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
 use crate::events::text::TimeUnit;
-use crate::events::{Decoder, Events, EventsView};
+use crate::events::{ColumnsMut, Decoder, Events, EventsView};
 
 pub const MAGIC: &[u8] = b"\x93NUMPY";
 
@@ -393,14 +395,16 @@ impl Conv<i8> for PolConv {
 /// Convert column `f` of every row in `data` into `out`. One tight loop per element type, so the
 /// per-value work inlines.
 #[inline]
-fn column<T>(data: &[u8], rs: usize, f: Field, out: &mut [T], conv: &impl Conv<T>) -> ColResult {
+fn column<T>(data: &[u8], rs: usize, f: Field, out: &mut [MaybeUninit<T>], conv: &impl Conv<T>) -> ColResult {
     macro_rules! go {
         ($t:ty, $n:expr, $to:expr, $method:ident) => {{
             for (i, (row, o)) in data.chunks_exact(rs).zip(out.iter_mut()).enumerate() {
                 let a: [u8; $n] = row[f.offset..f.offset + $n].try_into().unwrap();
                 let v = $to(if f.big_endian { <$t>::from_be_bytes(a) } else { <$t>::from_le_bytes(a) });
                 match conv.$method(v) {
-                    Some(c) => *o = c,
+                    Some(c) => {
+                        o.write(c);
+                    }
                     None => return Err((i, conv.why(v.to_string()))),
                 }
             }
@@ -430,12 +434,12 @@ fn decode_rows(layout: &NpyLayout, data: &[u8], first_row: u64, path: &str, out:
     let n = data.len() / rs;
     let time = TimeConv(layout.time_unit);
     let [ft, fx, fy, fp] = layout.fields;
-    let start = out.append_zeroed(n);
-    let first_error = out.t[start..]
+    let ColumnsMut { t, x, y, p } = out.spare_parts([n]).pop().expect("one part");
+    let first_error = t
         .par_chunks_mut(CH)
-        .zip(out.x[start..].par_chunks_mut(CH))
-        .zip(out.y[start..].par_chunks_mut(CH))
-        .zip(out.p[start..].par_chunks_mut(CH))
+        .zip(x.par_chunks_mut(CH))
+        .zip(y.par_chunks_mut(CH))
+        .zip(p.par_chunks_mut(CH))
         .zip(data[..n * rs].par_chunks(CH * rs))
         .enumerate()
         .filter_map(|(c, ((((t, x), y), p), d))| {
@@ -456,6 +460,8 @@ fn decode_rows(layout: &NpyLayout, data: &[u8], first_row: u64, path: &str, out:
         let off = layout.data_offset as u64 + row * rs as u64;
         return Err(Error::format(path, format!("row {row} (byte offset {off})"), msg));
     }
+    // SAFETY: without an error every column converted every one of the `n` rows.
+    unsafe { out.assume_filled(n) };
     Ok(())
 }
 

@@ -17,12 +17,14 @@ use crate::events::evt3::Evt3Decoder;
 use crate::events::npy::{parse_npy_header, NpyDecoder};
 use crate::events::raw_header::{parse_raw_header, DecodeStats};
 use crate::events::text::{TextDecoder, TextLayout, TextOptions};
-use crate::events::{Decoder, Events, EventsView};
+use crate::events::{reserve_huge, Decoder, Events, EventsView};
 
 /// Bytes read per block. The two block buffers are reused, so reads land in memory that is already
-/// mapped; the output grows by parallel zeroing ([`Events::append_zeroed`]), so blocks cost no
-/// serial copies, and the next block is read while the current one decodes.
+/// mapped; decoders write straight into reserved output columns ([`Events::spare_parts`]), so blocks
+/// cost no serial copies, and the next block is read while the current one decodes.
 const BLOCK: usize = 16 << 20;
+/// The first block of [`EventReader::read_all`], which estimates the output size.
+const PROBE_BLOCK: usize = 1 << 20;
 /// Room kept in front of each block for the previous block's unconsumed tail (a partial line, word
 /// or packet), so the two become contiguous without moving the block. Larger tails are copied.
 const GAP: usize = 1 << 20;
@@ -32,7 +34,7 @@ fn read_block(file: &mut File, block: &mut Vec<u8>, gap: usize, want: usize) -> 
     // The gap's contents are irrelevant: only resize (zero) it the first time.
     block.truncate(gap);
     block.resize(gap, 0);
-    block.reserve(want);
+    reserve_huge(block, want);
     // read_to_end fills spare capacity without zeroing it first.
     file.take(want as u64).read_to_end(block)
 }
@@ -421,6 +423,21 @@ impl EventReader {
 
     /// Every remaining event.
     pub fn read_all(&mut self) -> Result<Events> {
+        if !self.finished {
+            // Decode a small first block to learn the events per byte, then reserve the whole output
+            // once (plus 1/8): growing block by block would let `realloc` copy the columns into fresh
+            // pages again and again.
+            let probe = self.block.min(PROBE_BLOCK);
+            let block = std::mem::replace(&mut self.block, probe);
+            let first = self.fill();
+            self.block = block;
+            first?;
+            let done = self.bytes_done().max(1);
+            let rest = self.file_size.saturating_sub(done);
+            let est = u64::try_from(self.pending.len() as u128 * u128::from(rest) / u128::from(done));
+            let est = usize::try_from(est.unwrap_or(u64::MAX)).unwrap_or(usize::MAX);
+            self.pending.reserve(est.saturating_add(est / 8));
+        }
         while !self.finished {
             self.fill()?;
         }

@@ -533,6 +533,8 @@ impl LineParser<'_> {
         let mut k = 0;
         let mut lines = 0u64;
         let mut first_event_line = 0u64;
+        // Times of the first and latest event (`ts` is write-only).
+        let (mut first_t, mut last_t) = (0i64, 0i64);
         let plain = match self.layout.delimiter {
             Delimiter::Byte(d)
                 if self.exp == 0 && self.layout.roles == [Role::T, Role::X, Role::Y, Role::P] =>
@@ -569,13 +571,18 @@ impl LineParser<'_> {
                         || (self.height > 0 && u32::from(y) >= self.height)
                     {
                         format!("event ({x}, {y}) outside the {}x{} sensor", self.width, self.height)
-                    } else if self.require_sorted && k > 0 && t < ts[k - 1] {
-                        format!("time goes backwards ({t} < previous {})", ts[k - 1])
+                    } else if self.require_sorted && k > 0 && t < last_t {
+                        format!("time goes backwards ({t} < previous {last_t})")
                     } else {
                         if k == 0 {
                             first_event_line = lines;
+                            first_t = t;
                         }
-                        (ts[k], xs[k], ys[k], ps[k]) = (t, x, y, p);
+                        last_t = t;
+                        ts[k].write(t);
+                        xs[k].write(x);
+                        ys[k].write(y);
+                        ps[k].write(p);
                         k += 1;
                         continue;
                     }
@@ -591,7 +598,7 @@ impl LineParser<'_> {
                 error: Some((lines, msg)),
             };
         }
-        let (first_t, last_t) = (ts[..k].first().copied(), ts[..k].last().copied());
+        let (first_t, last_t) = ((k > 0).then_some(first_t), (k > 0).then_some(last_t));
         Chunk { events: k, first_t, last_t, lines, first_event_line, error: None }
     }
 }
@@ -713,19 +720,17 @@ impl TextDecoder {
             .par_iter()
             .map(|p| memchr::memchr_iter(b'\n', p).count() + usize::from(!p.ends_with(b"\n")))
             .collect();
-        let old = out.append_zeroed(slots.iter().sum());
-        let parts = out.split_mut(old, slots.iter().copied());
+        let parts = out.spare_parts(slots.iter().copied());
         let chunks: Vec<Chunk> =
             pieces.par_iter().zip(parts).map(|(p, part)| parser.parse_chunk(p, part)).collect();
-        let (mut slot, mut end) = (old, old);
+        // Close up the unused slots in the spare columns: events `slot..slot + c.events` move to `end`.
+        let (mut slot, mut end) = (0, 0);
         for (c, n) in chunks.iter().zip(&slots) {
             if let Some((line, msg)) = &c.error {
-                out.truncate(old);
                 return Err(Error::format(&self.path, format!("line {}", self.lines + line), msg));
             }
             if let (true, Some(last), Some(t0)) = (self.require_sorted, self.last, c.first_t) {
                 if t0 < last {
-                    out.truncate(old);
                     return Err(Error::format(
                         &self.path,
                         format!("line {}", self.lines + c.first_event_line),
@@ -736,15 +741,17 @@ impl TextDecoder {
             self.last = c.last_t.or(self.last);
             self.lines += c.lines;
             if slot != end {
-                out.t.copy_within(slot..slot + c.events, end);
-                out.x.copy_within(slot..slot + c.events, end);
-                out.y.copy_within(slot..slot + c.events, end);
-                out.p.copy_within(slot..slot + c.events, end);
+                let spare = out.spare_mut();
+                spare.t.copy_within(slot..slot + c.events, end);
+                spare.x.copy_within(slot..slot + c.events, end);
+                spare.y.copy_within(slot..slot + c.events, end);
+                spare.p.copy_within(slot..slot + c.events, end);
             }
             end += c.events;
             slot += n;
         }
-        out.truncate(end);
+        // SAFETY: each piece wrote its first `c.events` slots, now closed up into `0..end`.
+        unsafe { out.assume_filled(end) };
         Ok(())
     }
 }
