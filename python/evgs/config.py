@@ -159,6 +159,13 @@ class OutputConfig:
 
 
 @dataclass(frozen=True)
+class ScaleConfig:
+    source: Literal["none", "range", "target_size"]
+    target_size: float
+    min_alpha: float
+
+
+@dataclass(frozen=True)
 class Config:
     seq: str
     seed: int
@@ -173,6 +180,7 @@ class Config:
     strategy: StrategyConfig
     guards: GuardsConfig
     economy: EconomyConfig
+    scale: ScaleConfig
     output: OutputConfig
 
     def to_dict(self) -> dict[str, Any]:
@@ -257,6 +265,8 @@ def _check_ranges(cfg: Config, source: str) -> None:
     ]:
         if not 0 < value < 1:
             problems.append(f"{key} must be in (0, 1)")
+    if cfg.scale.source == "target_size" and cfg.scale.target_size <= 0:
+        problems.append("scale.source = 'target_size' needs scale.target_size > 0 (metres)")
     if not 0 <= cfg.loss.lambda_ssim <= 1:
         problems.append("loss.lambda_ssim must be in [0, 1]")
     positive = {

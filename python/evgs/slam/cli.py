@@ -122,5 +122,10 @@ def run(args: argparse.Namespace) -> int:
     run_dir.write_metrics(state, error)
     if "ate_rmse" in error:
         console.print(f"ATE RMSE (Sim(3)) {error['ate_rmse']:.4g}, rotation drift {error['drift_deg']:.2f}°")
+        if state.metric and "scale" in error:  # metric outputs: the alignment should not need to rescale
+            console.print(
+                f"metric scale ({state.metric['metric_scale_source']}): the Sim(3) alignment rescales the "
+                f"estimate by {error['scale']:.4g} (scale error {abs(error['scale'] - 1) * 100:.1f} %)"
+            )
     console.print(f"done: {run_dir.root}")
     return 0

@@ -17,6 +17,7 @@ from evgs.config import Config, GaussiansConfig
 from evgs.slam import checkpoint
 from evgs.slam.gaussians import Gaussians
 from evgs.slam.guards import BrightnessAnchor
+from evgs.slam.metric_scale import apply_scale, estimate_scale
 from evgs.slam.optimize import StageReporter
 from evgs.slam.run_dir import RunDir
 from evgs.slam.stages import global_ba, initialize, map_window, track
@@ -117,5 +118,16 @@ def run_slam(
         checkpoint.save(run.checkpoint_path, last)
         run.log(f"interrupted; checkpoint at chunk {last['position']['next_chunk']} written")
         raise
+    est = estimate_scale(state, cfg.scale)
+    if est is not None:  # the final checkpoint keeps map units: a resumed run rescales the same way
+        apply_scale(state, est.scale)
+        state.metric = {
+            "metric_scale": est.scale,
+            "metric_scale_source": est.source,
+            "range_samples": est.samples,
+        }
+        run.log(f"metric scale ({est.source}): {est.scale:.4g} m per map unit")
+        if log is not None:
+            log(f"metric scale ({est.source}): {est.scale:.4g} m per map unit")
     run.write_outputs(state)
     return state

@@ -108,7 +108,7 @@ def pipeline_metrics(state: SlamState) -> dict:
         "undistort_dropped_events": state.data.dropped,
         "final_loss": h[-1].loss if h else float("nan"),
         "stages": [asdict(r) for r in h],
-    }
+    } | state.metric
 
 
 def _finite(v: object) -> object:

@@ -62,6 +62,7 @@ class SlamState:
     anchor: BrightnessAnchor
     position: Position = field(default_factory=Position)
     history: list[StageRecord] = field(default_factory=list)
+    metric: dict = field(default_factory=dict)  # the metric-scale estimate applied to the outputs
 
     def num_init_chunks(self) -> int:
         """``m``: chunks of the initialization (fewer when the sequence is shorter)."""

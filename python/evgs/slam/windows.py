@@ -63,6 +63,7 @@ class EventData:
     contrast: float
     cfg: DataConfig
     undistort: UndistortMap | None = None
+    ranges: tuple[np.ndarray, np.ndarray] | None = None  # range meter (t_us, metres), for metric scale
     dropped: int = field(default=0)  # events undistorted outside the image, over every frame made
 
     @classmethod
@@ -87,8 +88,9 @@ class EventData:
         events = seq.events()
         undistort = UndistortMap.from_camera(seq.camera) if any(seq.camera.distortion) else None
         return cls(
-            events, frames, chunk_ranges(events.t, frames), seq.camera, cfg.event_contrast, cfg, undistort
-        )
+            events, frames, chunk_ranges(events.t, frames), seq.camera, cfg.event_contrast, cfg, undistort,
+            ranges=seq.range_samples(),
+        )  # fmt: skip
 
     @property
     def n_chunks(self) -> int:
