@@ -131,3 +131,10 @@ def test_config_follows_the_sequence_name():
     assert config_for("seenic/orbit_slow", None) == CONFIG_DIR / "seenic" / "_dataset.toml"
     assert config_for("nowhere/x", None) == DEFAULT_CONFIG
     assert config_for("seenic/orbit_ambient", "my.toml") == Path("my.toml")
+
+
+def test_range_scale_without_a_range_meter_is_refused_before_the_run(seq_dir, tmp_path, capsys):
+    args = ["run", "--seq", str(seq_dir), "--config", "synthetic/tiny", "--out", str(tmp_path), "--quiet"]
+    assert main([*args, "--set", "scale.source=range"]) == 2
+    assert "needs range.csv" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # no run directory was started

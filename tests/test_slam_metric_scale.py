@@ -15,6 +15,8 @@ from evgs.render import render  # noqa: E402
 from evgs.slam.gaussians import Gaussians  # noqa: E402
 from evgs.slam.guards import BrightnessAnchor  # noqa: E402
 from evgs.slam.metric_scale import apply_scale, estimate_scale, map_extent, range_scale  # noqa: E402
+from evgs.slam.pipeline import write_metric_scale  # noqa: E402
+from evgs.slam.run_dir import RunDir  # noqa: E402
 from evgs.slam.state import SlamState  # noqa: E402
 from evgs.slam.trajectory import Trajectory  # noqa: E402
 from evgs.slam.windows import EventData  # noqa: E402
@@ -88,3 +90,13 @@ def test_target_size_scales_the_map_extent(synth):
     assert est is not None and est.scale == pytest.approx(3.0 / extent)
     apply_scale(state, est.scale)
     assert map_extent(state.gaussians) == pytest.approx(3.0, rel=1e-5)
+
+
+def test_a_failed_estimate_keeps_map_units_and_says_why(synth, tmp_path):
+    state, _ = state_in_map_units(synth, "scale.source=range")  # the test sequence has no range.csv
+    means = state.gaussians["means"].detach().clone()
+    run = RunDir.create(tmp_path, "synth", state.cfg)
+    write_metric_scale(state, run, None)
+    assert "no range.csv" in state.metric["metric_scale_failed"]
+    assert torch.equal(state.gaussians["means"], means)
+    assert "outputs stay in map units" in (run.root / "log.txt").read_text()

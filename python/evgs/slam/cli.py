@@ -108,6 +108,10 @@ def run(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, seq=str(folder.resolve()))
         seq = Sequence.load(folder)
         data = EventData.from_sequence(seq, cfg.data)
+        if cfg.scale.source == "range" and data.ranges is None:
+            raise UserError(
+                f"{folder}: scale.source = 'range' needs range.csv (a range meter); set scale.source"
+            )
         run_dir = RunDir.create(args.out or Path(cfg.output.runs_dir), seq.name, cfg)
         state = new_state(cfg, data)
         run_dir.log(f"run of {seq.root} ({len(data.events)} events, {data.n_chunks} chunks)")
@@ -118,11 +122,15 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         console.print(f"interrupted: continue with  evgs run --resume {run_dir.root}")
         raise
+    if "metric_scale_failed" in state.metric:
+        console.print(f"warning: outputs stay in map units: {state.metric['metric_scale_failed']}")
     error = trajectory_error(run_dir.root)
     run_dir.write_metrics(state, error)
     if "ate_rmse" in error:
         console.print(f"ATE RMSE (Sim(3)) {error['ate_rmse']:.4g}, rotation drift {error['drift_deg']:.2f}°")
-        if state.metric and "scale" in error:  # metric outputs: the alignment should not need to rescale
+        if (
+            "metric_scale" in state.metric and "scale" in error
+        ):  # metric outputs: the alignment should not need to rescale
             console.print(
                 f"metric scale ({state.metric['metric_scale_source']}): the Sim(3) alignment rescales the "
                 f"estimate by {error['scale']:.4g} (scale error {abs(error['scale'] - 1) * 100:.1f} %)"

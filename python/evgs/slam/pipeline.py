@@ -68,6 +68,30 @@ def describe(record: StageRecord) -> str:
     )
 
 
+def write_metric_scale(state: SlamState, run: RunDir, log: Callable[[str], None] | None) -> None:
+    """Make the state metric as ``[scale]`` says; when the data cannot give the scale, the outputs stay in
+    map units with the reason in the log and ``metrics.json`` (a finished run is not thrown away)."""
+    try:
+        est = estimate_scale(state, state.cfg.scale)
+    except ValueError as e:
+        state.metric = {"metric_scale_failed": str(e)}
+        message = f"warning: outputs stay in map units: {e}"
+    else:
+        if est is None:
+            return
+        # The final checkpoint keeps map units: a resumed run rescales the same way.
+        apply_scale(state, est.scale)
+        state.metric = {
+            "metric_scale": est.scale,
+            "metric_scale_source": est.source,
+            "range_samples": est.samples,
+        }
+        message = f"metric scale ({est.source}): {est.scale:.4g} m per map unit"
+    run.log(message)
+    if log is not None:
+        log(message)
+
+
 def run_slam(
     state: SlamState,
     run: RunDir,
@@ -118,16 +142,6 @@ def run_slam(
         checkpoint.save(run.checkpoint_path, last)
         run.log(f"interrupted; checkpoint at chunk {last['position']['next_chunk']} written")
         raise
-    est = estimate_scale(state, cfg.scale)
-    if est is not None:  # the final checkpoint keeps map units: a resumed run rescales the same way
-        apply_scale(state, est.scale)
-        state.metric = {
-            "metric_scale": est.scale,
-            "metric_scale_source": est.source,
-            "range_samples": est.samples,
-        }
-        run.log(f"metric scale ({est.source}): {est.scale:.4g} m per map unit")
-        if log is not None:
-            log(f"metric scale ({est.source}): {est.scale:.4g} m per map unit")
+    write_metric_scale(state, run, log)
     run.write_outputs(state)
     return state
