@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from evgs.slam.lie import hat, se3_exp, se3_inverse, se3_log, so3_exp, so3_log
+from evgs.slam.lie import hat, project_se3, se3_exp, se3_inverse, se3_log, so3_exp, so3_log
 from evgs.slam.trajectory import Trajectory, constant_velocity, interpolate, random_knots
 from scipy.spatial.transform import Rotation
 
@@ -254,3 +254,29 @@ def test_viewmats_are_the_float32_inverse_poses():
     v = traj.viewmats_at([0, 4000])
     assert v.dtype == torch.float32
     assert torch.allclose(v.double() @ T[[0, 3]], torch.eye(4, dtype=D).expand(2, 4, 4), atol=1e-6)
+
+
+def test_knots_stay_rigid_over_long_constant_velocity_runs():
+    """Rounding in the knots' rotations used to grow ~2.4× per constant-velocity prediction until the
+    poses blew up after ~45 frames; every rebase and append now projects onto SE(3)."""
+    step = se3_exp(torch.tensor([0.01, 0.002, -0.03, 0.004, 0.011, -0.007], dtype=D))
+    traj = Trajectory(np.array([0, 40_000]), torch.stack([torch.eye(4, dtype=D), step]))
+    for k in range(2, 120):
+        traj.append(k * 40_000)
+        traj.rebase()
+    rot = traj.knots()[:, :3, :3].detach()
+    assert float((rot @ rot.transpose(1, 2) - torch.eye(3, dtype=D)).abs().max()) < 1e-12
+    expected = torch.linalg.matrix_power(step, 119)
+    assert torch.allclose(traj.knots()[-1].detach(), expected, atol=1e-9)
+
+
+def test_project_se3_is_the_nearest_rotation_and_keeps_rigid_transforms():
+    T = se3_exp(rand_twists(5, 1.0, seed=4))
+    assert torch.allclose(project_se3(T), T, atol=1e-14)
+    noisy = T.clone()
+    noisy[:, :3, :3] += 1e-3 * torch.randn(5, 3, 3, generator=torch.Generator().manual_seed(1), dtype=D)
+    P = project_se3(noisy)
+    R = P[:, :3, :3]
+    assert torch.allclose(R @ R.transpose(1, 2), torch.eye(3, dtype=D).expand(5, 3, 3), atol=1e-12)
+    assert torch.allclose(torch.linalg.det(R), torch.ones(5, dtype=D))
+    assert torch.allclose(R, T[:, :3, :3], atol=5e-3) and torch.equal(P[:, :3, 3], noisy[:, :3, 3])

@@ -29,6 +29,8 @@ from evgs.slam.optimize import StageReporter, StageSpec
 from evgs.slam.state import SlamState, StageRecord
 from evgs.slam.windows import Windows, scaled_camera
 
+MAX_STEP = 100.0  # longest accepted step per coordinate, in central-difference steps (0.1 rad at 1e-3)
+
 
 def residual_images(
     state: SlamState, knot: int, deltas: Tensor, win: Windows, factor: int
@@ -91,8 +93,10 @@ def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None =
         grad = (jac * w) @ r0
         cost0 = robust_cost(r0, kind)
         step = -torch.linalg.solve(hess + lam * torch.diag(hess.diagonal()) + 1e-12 * torch.eye(6), grad)
-        trial_resid, _ = residual_images(state, knot, (delta + step)[None], win, factor)
-        cost1 = robust_cost(trial_resid[0][mask].double(), kind)
+        cost1 = float("inf")  # a non-finite or implausibly long step (a near-singular system) is rejected
+        if bool(torch.isfinite(step).all()) and float((step.abs() / eps).max()) <= MAX_STEP:
+            trial_resid, _ = residual_images(state, knot, (delta + step)[None], win, factor)
+            cost1 = robust_cost(trial_resid[0][mask].double(), kind)
         if cost1 < cost0:
             delta, lam, loss = delta + step, max(lam / 3, 1e-7), cost1
             converged = bool((step.abs() < tc.lm_tolerance * eps).all())
