@@ -280,3 +280,7 @@ def test_project_se3_is_the_nearest_rotation_and_keeps_rigid_transforms():
     assert torch.allclose(R @ R.transpose(1, 2), torch.eye(3, dtype=D).expand(5, 3, 3), atol=1e-12)
     assert torch.allclose(torch.linalg.det(R), torch.ones(5, dtype=D))
     assert torch.allclose(R, T[:, :3, :3], atol=5e-3) and torch.equal(P[:, :3, 3], noisy[:, :3, 3])
+    mixed = torch.cat([T[:2], noisy[2:]])  # with a tolerance, rigid ones are kept bit for bit
+    assert torch.equal(project_se3(mixed, 1e-12)[:2], T[:2]) and torch.equal(
+        project_se3(mixed, 1e-12)[2:], P[2:]
+    )

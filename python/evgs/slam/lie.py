@@ -129,14 +129,18 @@ def _compose(rot: Tensor, trans: Tensor) -> Tensor:
     return torch.cat([top, bottom], -2)
 
 
-def project_se3(t: Tensor) -> Tensor:
-    """The nearest rigid transform: the rotation block replaced by its polar factor ``U Vᵀ``.
+def project_se3(t: Tensor, tol: float = 0.0) -> Tensor:
+    """The nearest rigid transform: the rotation block replaced by its polar factor ``U Vᵀ`` — for the
+    transforms whose ``|R Rᵀ − I|`` exceeds ``tol`` (the others are returned bit for bit).
 
     Knots are products of many exponentials; without this, rounding makes their rotations slightly
     non-orthonormal, and the constant-velocity prediction ``T₁ T₀⁻¹ T₁`` (with the transpose as inverse)
     roughly triples that error every frame until poses blow up some 40 frames later.
     """
-    u, _, vh = torch.linalg.svd(t[..., :3, :3])
+    rot = t[..., :3, :3]
+    eye = torch.eye(3, dtype=t.dtype, device=t.device)
+    bad = (rot @ rot.transpose(-1, -2) - eye).abs().amax((-1, -2)) > tol
+    u, _, vh = torch.linalg.svd(rot)
     d = torch.sign(torch.linalg.det(u @ vh))  # keep det +1
     u = torch.cat([u[..., :2], u[..., 2:] * d[..., None, None]], -1)
-    return _compose(u @ vh, t[..., :3, 3])
+    return torch.where(bad[..., None, None], _compose(u @ vh, t[..., :3, 3]), t)

@@ -27,6 +27,7 @@ from torch import Tensor
 from evgs.slam.lie import project_se3, se3_exp, se3_inverse, se3_log
 
 Interpolation = Literal["geodesic", "lerp"]
+RIGID_TOL = 1e-12  # knots whose rotation is further from orthonormal are projected back onto SE(3)
 
 
 def interpolate(t0: Tensor, t1: Tensor, tau: Tensor, method: Interpolation = "geodesic") -> Tensor:
@@ -94,7 +95,7 @@ class Trajectory(torch.nn.Module):
     @torch.no_grad()
     def rebase(self) -> None:
         """Fold the increments into the base poses and zero them (call between stages)."""
-        self.base = project_se3(self.knots().detach())
+        self.base = project_se3(self.knots().detach(), RIGID_TOL)
         self.delta.zero_()
 
     def forward(self, t_us: Tensor | np.ndarray) -> Tensor:
@@ -139,7 +140,7 @@ class Trajectory(torch.nn.Module):
         else:
             ratio = (t_new - int(self.t_us[-1])) / int(self.t_us[-1] - self.t_us[-2])
             pose = constant_velocity(knots[-2], knots[-1], ratio)
-        self.base = project_se3(torch.cat([knots, pose[None]]))
+        self.base = project_se3(torch.cat([knots, pose[None]]), RIGID_TOL)
         self.t_us = torch.cat([self.t_us, torch.tensor([t_new])])
         self.trainable = torch.cat([self.trainable, torch.tensor([True])])
         self.delta = torch.nn.Parameter(torch.zeros(len(self.t_us), 6, dtype=torch.float64))
