@@ -28,7 +28,7 @@ from evgs.config import load_config
 from evgs.data.sequence import Sequence
 from evgs.render import render
 from evgs.slam.lie import se3_exp, se3_inverse, se3_log
-from evgs.slam.loss import predicted_events
+from evgs.slam.loss import pointwise_error, predicted_events
 from evgs.slam.optimize import StageSpec, run_stage
 from evgs.slam.pipeline import new_state
 from evgs.slam.stages import set_brightness_reference, track
@@ -71,7 +71,7 @@ def landscape(state: SlamState, rel: torch.Tensor, k: int, windows: int = 3) -> 
             with torch.no_grad():
                 r = render(**state.gaussians.render_inputs(), viewmats=vm, camera=data.camera, background=0.0)
             d = w.frames[0] - predicted_events(r.color[0, ..., 0], r.color[1, ..., 0], cfg.loss)
-            losses.append(float(d.abs().mean() if cfg.loss.event_loss == "l1" else (d * d).mean()))
+            losses.append(float(pointwise_error(d, cfg.loss.event_loss).mean()))
         out.append(np.mean(losses))
     return np.array(out)
 

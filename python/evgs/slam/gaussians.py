@@ -121,9 +121,7 @@ class Gaussians:
         u = (pix % camera.width).double() + jitter[:, 0]
         v = (pix // camera.width).double() + jitter[:, 1]
         depth = lo + (hi - lo) * torch.rand(num, generator=generator, dtype=torch.float64)
-        means = torch.stack(
-            [(u - camera.cx) / camera.fx * depth, (v - camera.cy) / camera.fy * depth, depth], -1
-        )
+        means = camera_rays(u, v, camera) * depth[:, None]
         g = cls.at(means, opacity, color)
         with torch.no_grad():  # isolated seeds (noise events) would get huge, slow, view-filling scales
             cap = torch.quantile(g["log_scales"][:, 0], 0.9)
@@ -185,6 +183,11 @@ def quat_to_rotmat(q: Tensor) -> Tensor:
         -1,
     )  # fmt: skip
     return r.reshape(*q.shape[:-1], 3, 3)
+
+
+def camera_rays(u: Tensor, v: Tensor, camera: Camera) -> Tensor:
+    """(N, 3) camera-frame rays through image points ``(u, v)`` (pixels), scaled to unit depth (z = 1)."""
+    return torch.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, torch.ones_like(u)], -1)
 
 
 def knn_log_scale(points: np.ndarray) -> np.ndarray:

@@ -121,6 +121,11 @@ def event_mask(events: Tensor, threshold: float) -> Tensor:
     return events.abs() > threshold
 
 
+def pointwise_error(diff: Tensor, kind: str) -> Tensor:
+    """The per-pixel event error: ``|E − Ê|`` for ``"l1"`` (paper eq. 10), its square for ``"mse"``."""
+    return diff.abs() if kind == "l1" else diff * diff
+
+
 @dataclass(frozen=True)
 class LossTerms:
     total: Tensor
@@ -143,7 +148,7 @@ def event_loss(
             f"{tuple(events.shape)}, {tuple(start.shape)}, {tuple(end.shape)}"
         )
     diff = events - predicted_events(start, end, cfg)
-    err = diff.abs() if cfg.event_loss == "l1" else diff * diff
+    err = pointwise_error(diff, cfg.event_loss)
     if cfg.event_mask_threshold >= 0:
         m = event_mask(events, cfg.event_mask_threshold)
         mask = m if mask is None else mask & m

@@ -24,7 +24,7 @@ from torch import Tensor
 
 from evgs.render import render
 from evgs.slam.lie import se3_exp, se3_inverse
-from evgs.slam.loss import event_mask, predicted_events, valid_mask
+from evgs.slam.loss import event_mask, pointwise_error, predicted_events, valid_mask
 from evgs.slam.optimize import StageReporter, StageSpec
 from evgs.slam.state import SlamState, StageRecord
 from evgs.slam.windows import Windows, scaled_camera
@@ -58,10 +58,6 @@ def residual_images(
     return resid, alpha
 
 
-def robust_cost(r: Tensor, kind: str) -> float:
-    return float(r.abs().mean() if kind == "l1" else (r * r).mean())
-
-
 def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None = None) -> StageRecord:
     """Optimise the single trainable knot of ``spec`` by Levenberg–Marquardt; rebases at the end."""
     cfg, data, traj = state.cfg, state.data, state.traj
@@ -91,12 +87,12 @@ def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None =
         w = 1.0 / r0.abs().clamp(min=cfg.data.event_contrast) if kind == "l1" else torch.ones_like(r0)
         hess = (jac * w) @ jac.T
         grad = (jac * w) @ r0
-        cost0 = robust_cost(r0, kind)
+        cost0 = float(pointwise_error(r0, kind).mean())
         step = -torch.linalg.solve(hess + lam * torch.diag(hess.diagonal()) + 1e-12 * torch.eye(6), grad)
         cost1 = float("inf")  # a non-finite or implausibly long step (a near-singular system) is rejected
         if bool(torch.isfinite(step).all()) and float((step.abs() / eps).max()) <= MAX_STEP:
             trial_resid, _ = residual_images(state, knot, (delta + step)[None], win, factor)
-            cost1 = robust_cost(trial_resid[0][mask].double(), kind)
+            cost1 = float(pointwise_error(trial_resid[0][mask].double(), kind).mean())
         if cost1 < cost0:
             delta, lam, loss = delta + step, max(lam / 3, 1e-7), cost1
             converged = bool((step.abs() < tc.lm_tolerance * eps).all())

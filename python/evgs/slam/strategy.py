@@ -19,7 +19,7 @@ from torch import Tensor
 
 from evgs.config import StrategyConfig
 from evgs.data.sequence import Camera
-from evgs.slam.gaussians import PARAM_NAMES, Gaussians, opacity_logit, quat_to_rotmat
+from evgs.slam.gaussians import PARAM_NAMES, Gaussians, camera_rays, opacity_logit, quat_to_rotmat
 
 
 def _find_group(optimizer: torch.optim.Optimizer, param: Tensor) -> tuple[dict, int]:
@@ -224,7 +224,7 @@ def gaussians_from_view(
     pick = torch.randperm(len(rows), generator=generator)[:n]
     u = cols[pick].double() + 0.5  # pixel centres, as the rasterizer evaluates them
     v = rows[pick].double() + 0.5
-    rays = torch.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, torch.ones_like(u)], -1)
+    rays = camera_rays(u, v, camera)
     T = torch.as_tensor(T_wc, dtype=torch.float64)
     means = (rays * depth) @ T[:3, :3].T + T[:3, 3]
     spacing_px = math.sqrt(len(rows) / max(n, 1))
