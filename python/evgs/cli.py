@@ -16,6 +16,7 @@ COMMAND_MODULES = [
     "evgs.sim.cli",
     "evgs.data.cli",
     "evgs.slam.cli",
+    "evgs.bench.cli",
 ]
 
 
