@@ -4,7 +4,7 @@ VENV ?= $(shell bash .ci/env.sh)
 PY := $(VENV)/bin/python
 EXT_SUFFIX = $(shell $(PY) -c "import sysconfig; print(sysconfig.get_config_var('EXT_SUFFIX'))")
 
-.PHONY: install dev run test test-rust test-py lint fmt bench
+.PHONY: install dev run test test-rust test-py lint fmt bench bench-slam
 
 ## install: build the extension (release: fat LTO) and install evgs into the venv, editable
 install:
@@ -44,3 +44,8 @@ fmt:
 bench: install
 	cargo bench
 	for f in benches/*.py; do $(PY) $$f; done
+
+## bench-slam: the SLAM suite (every synthetic preset × seeds 0 1 2; hours on 2 cores), e.g.
+## make bench-slam BENCH_ARGS="--presets docking_good --seeds 0 --frames 20"
+bench-slam: install
+	$(VENV)/bin/evgs bench slam $(BENCH_ARGS)

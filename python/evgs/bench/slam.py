@@ -124,8 +124,8 @@ def child_argv(spec: RunSpec) -> list[str]:
     """``evgs run`` of one spec, in this interpreter."""
     # Not ``-m evgs.cli``: as ``__main__`` its UserError would be another class than the one raised.
     argv = [sys.executable, "-c", "import sys; from evgs.cli import main; sys.exit(main(sys.argv[1:]))",
-            "run", "--seq", str(spec.sequence.resolve()), "--config", str(spec.config), "--out",
-            str(spec.slot.resolve()), "--quiet"]  # fmt: skip
+            "run", "--seq", str(spec.sequence.absolute()), "--config", str(spec.config), "--out",
+            str(spec.slot.absolute()), "--quiet"]  # fmt: skip
     for item in spec.overrides:
         argv += ["--set", item]
     return argv
@@ -137,6 +137,7 @@ def run_child(argv: list[str], log_path: Path) -> ChildResult:
     # The child imports the same evgs as this process, however this one found it.
     package_root = str(Path(evgs.__file__).resolve().parents[1])
     env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
+    env["COLUMNS"] = "200"  # the log is a file: no wrapping of the run's messages at 80 columns
     log_path.parent.mkdir(parents=True, exist_ok=True)
     with open(log_path, "wb") as log:
         t0 = time.perf_counter()
