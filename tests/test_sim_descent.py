@@ -131,24 +131,25 @@ def test_terrain_fills_the_view_for_the_whole_descent(terrain):
 
 
 def test_descent_preset_simulates_events_and_range(tmp_path):
-    cfg = dataclasses.replace(preset("descent").with_resolution(160, 120), duration=0.5)
+    cfg = dataclasses.replace(preset("descent").with_resolution(160, 120), duration=0.3)
     seq = simulate(cfg, tmp_path / "descent", progress=False)
     seq = Sequence.load(seq.root)
     ev = seq.events()
     ev.validate("descent")
     frames = seq.frames_us()
-    np.testing.assert_array_equal(frames, np.arange(0, 500_001, 40_000))
-    # Texture everywhere: many events per frame, both polarities, most pixels fire.
-    assert len(ev) > 20 * 160 * 120 * 0.5
-    assert 0.2 < np.mean(ev.p == 1) < 0.8
-    assert len(np.unique(ev.y.astype(np.int64) * 160 + ev.x)) > 0.8 * 160 * 120
+    np.testing.assert_array_equal(frames, np.arange(0, 300_001, 40_000))
+    # Texture everywhere: many events per frame (the full preset makes ~0.4 per pixel), both
+    # polarities, and most pixels fire.
+    assert len(ev) > 0.2 * 160 * 120 * (len(frames) - 1)
+    assert 0.3 < np.mean(ev.p == 1) < 0.7
+    assert len(np.unique(ev.y.astype(np.int64) * 160 + ev.x)) > 0.5 * 160 * 120
     # The GT images are terrain to the border: no black sky, shadows and sunlit slopes.
     for k in (0, len(frames) - 1):
         img = seq.image(k)
         assert np.mean(img == 0.0) < 0.01 and img.std() > 0.03
     # Range along the optical axis: every sample hits, about altitude / cos(tilt), decreasing.
     rt, rd = seq.range_samples()
-    np.testing.assert_array_equal(rt, np.arange(0, 500_001, 100_000))
+    np.testing.assert_array_equal(rt, np.arange(0, 300_001, 100_000))
     assert seq.meta["simulator"]["stats"]["range_misses"] == 0
     t_us, T_wc = seq.poses_gt()
     altitude = np.interp(rt, t_us, T_wc[:, 2, 3])
