@@ -20,10 +20,13 @@ from evgs.sim.render import Renderer
 from evgs.sim.scene import Scene, make_scene
 from evgs.sim.trajectory import ReplayTrajectory
 
-# Vertices used to bound image motion per frame (an even subsample of large meshes).
+# Vertices used to bound image motion per frame (an even subsample of the ones in view).
 MAX_MOTION_VERTICES = 4000
 # Time step (s) of the finite difference that estimates the image motion rate.
 MOTION_PROBE_S = 1e-3
+# Vertices this far outside the image (fraction of its larger side) still bound the motion: they may
+# enter the view within the step.
+VIEW_MARGIN = 0.25
 
 
 def project(camera: Camera, T_wc: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -40,17 +43,23 @@ def _regular_times(rate_hz: float, t_end_us: int) -> np.ndarray:
 
 
 class _MotionBound:
-    """Largest time step keeping every vertex's image motion under ``max_px`` pixels."""
+    """Largest time step keeping the image motion of every vertex in (or near) the view under ``max_px``
+    pixels. Vertices far outside the view make no events; on a terrain that fills the view they would
+    otherwise set the bound (ground near the horizon sweeps across the image plane far off-screen)."""
 
     def __init__(self, scene: Scene, camera: Camera, trajectory, max_px: float) -> None:
-        v = scene.vertices
-        self.points = v[:: max(1, len(v) // MAX_MOTION_VERTICES)]
+        self.points = scene.vertices
         self.camera, self.trajectory, self.max_px = camera, trajectory, max_px
+        m = VIEW_MARGIN * max(camera.width, camera.height)
+        self.lo, self.hi = np.array([-m, -m]), np.array([camera.width - 1 + m, camera.height - 1 + m])
 
     def dt_us(self, t_s: float) -> float:
-        T = self.trajectory(np.array([t_s, t_s + MOTION_PROBE_S]))
-        uv0, uv1 = (project(self.camera, Ti, self.points) for Ti in T)
-        rate = np.nanmax(np.linalg.norm(uv1 - uv0, axis=1), initial=0.0) / MOTION_PROBE_S
+        T0, T1 = self.trajectory(np.array([t_s, t_s + MOTION_PROBE_S]))
+        uv0 = project(self.camera, T0, self.points)
+        near = np.flatnonzero(np.all((uv0 >= self.lo) & (uv0 <= self.hi), axis=1))  # NaN: behind
+        near = near[:: max(1, len(near) // MAX_MOTION_VERTICES)]
+        uv1 = project(self.camera, T1, self.points[near])
+        rate = np.nanmax(np.linalg.norm(uv1 - uv0[near], axis=1), initial=0.0) / MOTION_PROBE_S
         return self.max_px / rate * 1e6 if rate > 0 else np.inf
 
 
@@ -103,7 +112,7 @@ def simulate(cfg: SimConfig, out: str | Path, *, progress: bool = True) -> Seque
 
     columns = (TextColumn(f"simulate {cfg.name}"), BarColumn(), TextColumn("{task.fields[info]}"))
     with (
-        Renderer(scene, camera, LIGHTING[cfg.lighting], msaa=cfg.msaa) as r,
+        Renderer(scene, camera, LIGHTING[cfg.lighting], msaa=cfg.msaa, shadow_size=cfg.shadow_size) as r,
         Progress(*columns, TimeElapsedColumn(), disable=not progress, transient=True) as bar,
     ):
         task = bar.add_task("sim", total=t_end_us, info="")

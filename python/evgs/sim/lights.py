@@ -40,6 +40,13 @@ _RIG = (
     ((0.2, 0.3, -1.0), 0.25),
 )
 
+
+def from_horizon(elevation_deg: float, azimuth_deg: float) -> tuple[float, float, float]:
+    """Unit direction ``elevation_deg`` above the horizontal plane, ``azimuth_deg`` from +x towards +y."""
+    el, az = np.radians(elevation_deg), np.radians(azimuth_deg)
+    return (float(np.cos(el) * np.cos(az)), float(np.cos(el) * np.sin(az)), float(np.sin(el)))
+
+
 GOOD = Lighting(sun_dir=(0.6, 0.5, 0.6), sun=1.0, fills=_RIG[:1] + _RIG[3:], ambient=0.01)
 
 LIGHTING: dict[str, Lighting] = {
@@ -51,4 +58,8 @@ LIGHTING: dict[str, Lighting] = {
     "ambient": Lighting(sun_dir=(0.3, 0.4, 1.0), sun=0.35, fills=_RIG, ambient=0.05),
     # One hard sun from the side, nothing else: strong contrast and shadows.
     "directional": Lighting(sun_dir=(0.2, 1.0, 0.3), sun=1.2),
+    # Lunar descent: a grazing sun 15° above the horizon, from behind on the left of a lander heading +x,
+    # so that craters and boulders cast long shadows (bright enough that flat regolith renders at ~0.1),
+    # and a faint ambient standing in for earthshine and light scattered off the surroundings.
+    "low_sun": Lighting(sun_dir=from_horizon(15.0, 120.0), sun=3.0, ambient=0.03),
 }

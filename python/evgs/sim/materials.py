@@ -36,6 +36,8 @@ MATERIALS: dict[str, Material] = {
     "dark": Material(albedo=0.05, specular=0.1, shininess=20.0),
     # Bare aluminium.
     "metal": Material(albedo=0.45, specular=0.35, shininess=30.0),
+    # Lunar regolith: dark grey, diffuse; its texture comes from relief under a low sun.
+    "regolith": Material(albedo=0.15),
 }
 
 MATERIAL_IDS: dict[str, int] = {name: i for i, name in enumerate(MATERIALS)}

@@ -2,7 +2,8 @@
 
 The presets mirror the paper's scenarios: SEENIC's Hubble mock-up in ambient / strongly directional light
 (``orbit_ambient`` is the built-in default sequence) and the Blender scenes of Table 3 (docking, swirl,
-orbit; good and low light) on a generic satellite bus. ``tiny`` is a fast 160×120 preset for tests.
+orbit; good and low light) on a generic satellite bus. ``descent`` is an ELOPE-like lunar lander's final
+approach over cratered terrain under a low sun. ``tiny`` is a fast 160×120 preset for tests.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ class SimConfig:
     name: str
     # Scene.
     target: str = "hubble"
-    """``hubble``, ``satellite`` or a mesh file."""
+    """``hubble``, ``satellite``, ``surface`` (lunar-like terrain) or a mesh file."""
     material: str = "paint"
     """Material of a mesh file (built-in targets carry their own)."""
     mesh_scale: float = 1.0
@@ -67,6 +68,8 @@ class SimConfig:
     dt_min_us: int = 200
     dt_max_us: int = 10_000
     msaa: int = 4
+    shadow_size: int = 2048
+    """Side of the sun's shadow map in texels (it covers the whole scene: large scenes need more)."""
     seed: int = 0
 
     @property
@@ -86,6 +89,7 @@ class SimConfig:
             ("max_px_per_frame", self.max_px_per_frame > 0, "> 0"),
             ("dt_min_us", 1 <= self.dt_min_us <= self.dt_max_us, "≥ 1 and ≤ dt_max_us"),
             ("msaa", self.msaa >= 0, "≥ 0"),
+            ("shadow_size", 64 <= self.shadow_size <= 8192, "in [64, 8192]"),
         ]
         for name, ok, need in checks:
             if not ok:
@@ -136,6 +140,18 @@ PRESETS: dict[str, SimConfig] = {
     "swirl_good": dataclasses.replace(_SWIRL, name="swirl_good", lighting="good"),
     "swirl_low": dataclasses.replace(_SWIRL, name="swirl_low", lighting="low"),
     "orbit": SimConfig("orbit", target="satellite", distance=6.0, speed=1.5, duration=4.0),
+    # 10 m → 4.5 m altitude in 4 s on a 60° glide path (1.4 m/s down, 0.8 m/s forward).
+    "descent": SimConfig(
+        "descent",
+        target="surface",
+        lighting="low_sun",
+        trajectory="descent",
+        distance=10.0,
+        speed=1.6,
+        duration=4.0,
+        elevation_deg=60.0,
+        shadow_size=4096,
+    ),  # fmt: skip
     "tiny": SimConfig("tiny", duration=0.4).with_resolution(160, 120),
 }
 

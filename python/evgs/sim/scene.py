@@ -1,7 +1,8 @@
 """Simulated targets as triangle soups with per-corner normals and material ids.
 
-World = target frame, metres, +z up. Built-in procedural targets: a Hubble-like telescope and a generic
-satellite bus; any mesh trimesh can read (OBJ/GLB/PLY/STL, …) can be used instead.
+World = target frame, metres, +z up. Built-in procedural targets: a Hubble-like telescope, a generic
+satellite bus and a lunar-like terrain patch (for descents); any mesh trimesh can read (OBJ/GLB/PLY/STL,
+…) can be used instead.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from scipy.ndimage import gaussian_filter
 from trimesh.transformations import rotation_matrix, translation_matrix
 
 from evgs.sim.materials import MATERIAL_IDS
@@ -146,7 +148,92 @@ def satellite() -> Scene:
     return build_scene(parts)
 
 
-TARGETS = {"hubble": hubble, "satellite": satellite}
+# The terrain patch: half its side (m), grid step (m), and the crater population. At the descent preset's
+# 10 m start altitude the camera sees about ±8 m of ground; the patch leaves a margin for the ground track.
+SURFACE_HALF_SIZE = 12.0
+SURFACE_STEP = 0.08
+SURFACE_SEED = 0
+CRATERS = 1500
+CRATER_RADII = (0.15, 3.0)
+CRATER_SLOPE = 2.0
+"""Cumulative size distribution N(> r) ∝ r^-CRATER_SLOPE (about the lunar one at these sizes)."""
+BOULDERS = 60
+
+
+def _crater_profile(r: np.ndarray) -> np.ndarray:
+    """Height of a crater of unit radius at normalised distance ``r``: a bowl of depth 0.35 below a rim
+    0.08 high, the ejecta blanket falling off as r^-3 outside, reaching 0 at r = 3."""
+    rim, depth = 0.08, 0.35
+    inside = rim + depth * (r**2 - 1.0)
+    outside = rim * (np.maximum(r, 1.0) ** -3.0 - 1.0 / 27.0) / (1.0 - 1.0 / 27.0)
+    return np.where(r < 1.0, inside, np.where(r < 3.0, outside, 0.0))
+
+
+def surface_heights(seed: int = SURFACE_SEED) -> tuple[np.ndarray, np.ndarray]:
+    """Grid coordinates (n,) and heights (n, n) (indexed ``[iy, ix]``) of the terrain: rolling noise
+    of a few octaves plus craters of random freshness with a power-law size distribution."""
+    rng = np.random.default_rng(seed)
+    n = round(2 * SURFACE_HALF_SIZE / SURFACE_STEP) + 1
+    xs = np.linspace(-SURFACE_HALF_SIZE, SURFACE_HALF_SIZE, n)
+    h = np.zeros((n, n))
+    # Rolling terrain and small-scale roughness: (correlation length m, standard deviation m).
+    for length, amplitude in ((4.0, 0.25), (1.2, 0.06), (0.3, 0.02), (0.12, 0.008)):
+        octave = gaussian_filter(rng.standard_normal((n, n)), length / SURFACE_STEP, mode="wrap")
+        h += amplitude * octave / octave.std()
+    r_min, r_max = CRATER_RADII
+    # Inverse-CDF sampling of the truncated power law.
+    u = rng.random(CRATERS)
+    a, b = r_min**-CRATER_SLOPE, r_max**-CRATER_SLOPE
+    radii = (a - u * (a - b)) ** (-1.0 / CRATER_SLOPE)
+    centres = rng.uniform(-SURFACE_HALF_SIZE, SURFACE_HALF_SIZE, (CRATERS, 2))
+    freshness = rng.uniform(0.3, 1.0, CRATERS)  # older craters are shallower (degraded)
+    for (cx, cy), radius, fresh in zip(centres, radii, freshness, strict=True):
+        reach = 3.0 * radius
+        i0, i1 = np.searchsorted(xs, [cy - reach, cy + reach])
+        j0, j1 = np.searchsorted(xs, [cx - reach, cx + reach])
+        if i1 <= i0 or j1 <= j0:
+            continue
+        dist = np.hypot(xs[j0:j1][None, :] - cx, xs[i0:i1][:, None] - cy) / radius
+        h[i0:i1, j0:j1] += fresh * radius * _crater_profile(dist)
+    return xs, h
+
+
+def _heightfield(xs: np.ndarray, h: np.ndarray) -> trimesh.Trimesh:
+    n = len(xs)
+    gx, gy = np.meshgrid(xs, xs)
+    vertices = np.stack([gx.ravel(), gy.ravel(), h.ravel()], -1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
+    faces = np.concatenate([np.stack([a, b, c], -1), np.stack([a, c, d], -1)])  # counter-clockwise: +z
+    return trimesh.Trimesh(vertices, faces, process=False)
+
+
+def _height_at(xs: np.ndarray, h: np.ndarray, x: float, y: float) -> float:
+    j = int(np.clip(np.searchsorted(xs, x), 0, len(xs) - 1))
+    i = int(np.clip(np.searchsorted(xs, y), 0, len(xs) - 1))
+    return float(h[i, j])
+
+
+def surface(seed: int = SURFACE_SEED) -> Scene:
+    """Lunar-like terrain patch (24 m square, z = height, ~180 k triangles): a cratered heightfield and
+    a scatter of half-buried, irregular boulders, all regolith. Deterministic for a given ``seed``."""
+    xs, h = surface_heights(seed)
+    rng = np.random.default_rng([seed, 1])
+    parts = [_part(_heightfield(xs, h), "regolith")]
+    limit = 0.9 * SURFACE_HALF_SIZE
+    for _ in range(BOULDERS):
+        radius = 0.08 * (1.0 - rng.random()) ** -0.6  # mostly small, a few up to ~0.5 m
+        x, y = rng.uniform(-limit, limit, 2)
+        rock = trimesh.creation.icosphere(subdivisions=1, radius=1.0)
+        rock.vertices *= rng.uniform(0.8, 1.2, (len(rock.vertices), 1))  # irregular facets
+        rock.vertices *= radius * np.array([1.0, rng.uniform(0.6, 1.0), rng.uniform(0.5, 0.8)])
+        rock.apply_transform(rotation_matrix(rng.uniform(0, 2 * np.pi), [0, 0, 1]))
+        rock.apply_translation([x, y, _height_at(xs, h, x, y)])  # the lower part is buried
+        parts.append(_part(rock, "regolith"))
+    return build_scene(parts)
+
+
+TARGETS = {"hubble": hubble, "satellite": satellite, "surface": surface}
 
 
 def load_mesh(path: str | Path, material: str = "paint", scale: float = 1.0) -> Scene:

@@ -1,6 +1,7 @@
 """Camera trajectories around the target: straight approach, swirl (sinusoidal bent approach, half a
-cycle), circular orbit, or a replayed TUM file. All return camera-to-world poses (OpenCV camera axes,
-world = target frame, +z up) at any time in seconds since the start; generated ones look at the origin.
+cycle), circular orbit, a lander's descent over a surface, or a replayed TUM file. All return
+camera-to-world poses (OpenCV camera axes, world = target frame, +z up) at any time in seconds since the
+start; the approaches and the orbit look at the origin, the descent looks down.
 """
 
 from __future__ import annotations
@@ -14,8 +15,11 @@ from scipy.spatial.transform import Rotation, Slerp
 from evgs.data.tum import read_tum
 from evgs.geometry import make_pose
 
-KINDS = ("approach", "swirl", "orbit")
+KINDS = ("approach", "swirl", "orbit", "descent")
 UP = np.array([0.0, 0.0, 1.0])
+DESCENT_TILT_DEG = 10.0
+"""The descent camera's optical axis is tilted this far from nadir towards the direction of travel
+(a lander's camera looks slightly ahead at the landing site)."""
 
 
 def look_at(eye: np.ndarray, target: np.ndarray | None = None) -> np.ndarray:
@@ -34,12 +38,28 @@ def look_at(eye: np.ndarray, target: np.ndarray | None = None) -> np.ndarray:
     return make_pose(np.stack([x, y, z], axis=-1), eye)
 
 
+def look_down(eye: np.ndarray, heading: np.ndarray, tilt_deg: float) -> np.ndarray:
+    """(…, 4, 4) camera-to-world poses at ``eye`` (…, 3) looking down, tilted ``tilt_deg`` from nadir
+    towards the horizontal unit vector ``heading``, which points "up" in the image."""
+    eye = np.asarray(eye, np.float64)
+    tilt = np.radians(tilt_deg)
+    z = np.cos(tilt) * -UP + np.sin(tilt) * heading
+    y = -(np.cos(tilt) * heading + np.sin(tilt) * UP)  # image down: backwards and down
+    x = np.cross(y, z)
+    R = np.stack([x, y, z], axis=-1)
+    return make_pose(np.broadcast_to(R, eye.shape[:-1] + (3, 3)), eye)
+
+
 @dataclass(frozen=True)
 class Trajectory:
     """A generated trajectory. ``distance`` is the start distance (orbit: the radius) in metres,
     ``speed`` the camera's speed along the path in m/s, ``elevation_deg``/``azimuth_deg`` the start
     direction seen from the target; ``amplitude`` is the swirl's sideways excursion (default: a
-    quarter of the distance)."""
+    quarter of the distance).
+
+    The descent is a straight glide over the surface z = 0: ``distance`` is the start altitude,
+    ``elevation_deg`` the flight-path angle below the horizontal (90: straight down) and
+    ``azimuth_deg`` the heading of the horizontal travel; the ground track is centred on the origin."""
 
     kind: str
     distance: float
@@ -54,15 +74,33 @@ class Trajectory:
             raise ValueError(f"unknown trajectory {self.kind!r} (choose from {', '.join(KINDS)})")
         if not (self.distance > 0 and self.duration > 0 and self.speed >= 0):
             raise ValueError("trajectory needs distance > 0, duration > 0 and speed ≥ 0")
-        if self.kind != "orbit" and self.speed * self.duration >= 0.9 * self.distance:
+        if self.kind == "descent":
+            self._check_descent()
+        elif self.kind != "orbit" and self.speed * self.duration >= 0.9 * self.distance:
             raise ValueError(
                 f"{self.kind}: speed × duration = {self.speed * self.duration:.3g} m would reach the target "
                 f"(start distance {self.distance:.3g} m)"
             )
 
+    def _check_descent(self) -> None:
+        if not 0.0 < self.elevation_deg <= 90.0:
+            raise ValueError(
+                f"descent: elevation_deg = {self.elevation_deg:g} must be in (0, 90] (the glide angle)"
+            )
+        drop = self.speed * self.duration * np.sin(np.radians(self.elevation_deg))
+        if drop >= 0.9 * self.distance:
+            raise ValueError(
+                f"descent: the camera would drop {drop:.3g} m and reach the surface (start altitude "
+                f"{self.distance:.3g} m; keep the end altitude above 10 % of it)"
+            )
+
     @property
     def t_end(self) -> float:
         return self.duration
+
+    def _heading(self) -> np.ndarray:
+        az = np.radians(self.azimuth_deg)
+        return np.array([np.cos(az), np.sin(az), 0.0])
 
     def _direction(self, azimuth: np.ndarray) -> np.ndarray:
         el = np.radians(self.elevation_deg)
@@ -74,6 +112,11 @@ class Trajectory:
     def positions(self, t: np.ndarray) -> np.ndarray:
         t = np.asarray(t, np.float64)
         az0 = np.radians(self.azimuth_deg)
+        if self.kind == "descent":
+            el = np.radians(self.elevation_deg)
+            along = self.speed * np.cos(el) * (t - 0.5 * self.duration)
+            altitude = self.distance - self.speed * np.sin(el) * t
+            return along[..., None] * self._heading() + altitude[..., None] * UP
         if self.kind == "orbit":
             radius = self.distance * np.cos(np.radians(self.elevation_deg))  # of the horizontal circle
             return self.distance * self._direction(az0 + self.speed / radius * t)
@@ -88,6 +131,8 @@ class Trajectory:
 
     def __call__(self, t: np.ndarray | float) -> np.ndarray:
         """Camera-to-world poses (…, 4, 4) at times ``t`` (s since the start)."""
+        if self.kind == "descent":
+            return look_down(self.positions(t), self._heading(), DESCENT_TILT_DEG)
         return look_at(self.positions(t))
 
 
