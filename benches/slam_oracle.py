@@ -57,7 +57,7 @@ def gt_knots(seq: Sequence, data: EventData, init_depth: float) -> torch.Tensor:
 def landscape(state: SlamState, rel: torch.Tensor, k: int, windows: int = 3) -> np.ndarray:
     """Mean event loss (the configured L1/MSE) of chunk ``k`` with knot ``k+1`` at each of :data:`STEPS`."""
     data, cfg = state.data, state.cfg
-    sampler = data.sampler(data.span(k, k + 1), 7)
+    sampler = data.sampler(data.span_with_min(k, k + 1), 7)
     wins = [data.windows(sampler, 1, 1) for _ in range(windows)]
     step = se3_log(se3_inverse(rel[k]) @ rel[k + 1])
     out = []

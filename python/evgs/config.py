@@ -54,6 +54,11 @@ class InitConfig:
     num_frames: int
     num_opti_steps_for_init: int
     lr_boost: float
+    motion_search: bool
+    search_steps: int
+    search_rate: float
+    search_range: float
+    search_polls: int
 
 
 @dataclass(frozen=True)
@@ -267,6 +272,10 @@ def _check_ranges(cfg: Config, source: str) -> None:
             problems.append(f"{key} must be in (0, 1)")
     if cfg.scale.source == "target_size" and cfg.scale.target_size <= 0:
         problems.append("scale.source = 'target_size' needs scale.target_size > 0 (metres)")
+    if cfg.init.motion_search and (
+        cfg.init.search_steps < 1 or cfg.init.search_rate <= 0 or cfg.init.search_range <= 1
+    ):
+        problems.append("init.motion_search needs search_steps >= 1, search_rate > 0 and search_range > 1")
     if not 0 <= cfg.loss.lambda_ssim <= 1:
         problems.append("loss.lambda_ssim must be in [0, 1]")
     positive = {

@@ -20,7 +20,7 @@ from evgs.slam.guards import BrightnessAnchor
 from evgs.slam.metric_scale import apply_scale, estimate_scale
 from evgs.slam.optimize import StageReporter
 from evgs.slam.run_dir import RunDir
-from evgs.slam.stages import global_ba, initialize, map_window, track
+from evgs.slam.stages import global_ba, initialize, map_window, start_from_best_motion, track
 from evgs.slam.state import SlamState, StageRecord
 from evgs.slam.trajectory import Trajectory, random_knots
 from evgs.slam.windows import EventData
@@ -62,6 +62,7 @@ def describe(record: StageRecord) -> str:
     early = ", converged" if record.stopped_early else ""
     extra = f", +{record.added} new" if record.added else ""
     extra += f", {record.pruned_blockers} blockers pruned" if record.pruned_blockers else ""
+    extra += f", {record.note}" if record.note else ""
     return (
         f"{record.stage} frame {record.frame}: {record.iterations} it{early}, loss {record.loss:.5f}, "
         f"{record.n_gaussians} Gaussians{extra}, {record.seconds:.1f} s"
@@ -120,6 +121,8 @@ def run_slam(
 
     try:
         if not pos.initialized:
+            if cfg.init.motion_search:
+                note(start_from_best_motion(state, reporter))
             note(initialize(state, reporter))
             pos.initialized, pos.next_chunk = True, state.num_init_chunks()
             boundary(force=True)

@@ -4,6 +4,7 @@ Knot ``k`` sits at frame ``k`` (of the frames the run uses) and chunk ``k`` hold
 knots ``k`` and ``k+1``. Knot 0 is never optimised: it fixes the gauge (the map's frame), which the
 event loss cannot observe.
 
+- motion search (optional): the constant-velocity motion the initialization starts from;
 - initialization: chunks ``0..m-1``, knots ``1..m`` and the Gaussians jointly;
 - tracking of chunk ``k``: knot ``k+1`` appended by constant velocity, then only it moves;
 - mapping (local BA): the last ``mapping.window`` chunks, their knots and the Gaussians, after adding
@@ -13,9 +14,12 @@ event loss cannot observe.
 
 from __future__ import annotations
 
+import time
+
 import torch
 
 from evgs.render import render
+from evgs.slam.motion_search import search_motion
 from evgs.slam.optimize import StageReporter, StageSpec, run_stage
 from evgs.slam.pose_solver import lm_track
 from evgs.slam.state import SlamState, StageRecord, stage_seed
@@ -24,6 +28,24 @@ from evgs.slam.strategy import DefaultStrategy, gaussians_from_view, median_dept
 
 def _seq_frame(state: SlamState, knot: int) -> int:
     return state.cfg.data.start_frame + knot
+
+
+def start_from_best_motion(state: SlamState, reporter: StageReporter | None = None) -> StageRecord:
+    """Set the init knots to the best constant-velocity hypothesis (:mod:`evgs.slam.motion_search`)."""
+    t0 = time.perf_counter()
+    m = state.num_init_chunks()
+    best, tried = search_motion(state, reporter)
+    with torch.no_grad():
+        state.traj.base.copy_(best.knots(m + 1))
+    scores = dict(tried)
+    runner_up = min((s for name, s in tried if name != best.name), default=float("nan"))
+    record = StageRecord(
+        "search", _seq_frame(state, m), len(tried) * state.cfg.init.search_steps, scores[best.name],
+        time.perf_counter() - t0, 0, False, len(state.gaussians),
+        note=f"best of {len(tried)} motions: {best.name} (next best loss {runner_up:.5f})",
+    )  # fmt: skip
+    state.history.append(record)
+    return record
 
 
 def initialize(state: SlamState, reporter: StageReporter | None = None) -> StageRecord:

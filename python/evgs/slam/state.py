@@ -18,7 +18,7 @@ from evgs.slam.guards import BrightnessAnchor
 from evgs.slam.trajectory import Trajectory
 from evgs.slam.windows import EventData
 
-STAGES = ("init", "track", "map", "gba", "final")
+STAGES = ("init", "track", "map", "gba", "final", "search")
 
 
 def stage_seed(seed: int, stage: str, frame: int) -> int:
@@ -50,6 +50,7 @@ class StageRecord:
     n_gaussians: int
     pruned_blockers: int = 0
     added: int = 0
+    note: str = ""  # what the stage chose (the motion search's hypothesis)
 
 
 @dataclass
