@@ -59,6 +59,7 @@ class InitConfig:
     search_rate: float
     search_range: float
     search_polls: int
+    search_frames: int
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,9 @@ sharper map explains the events of a small motion about as well, and the knots n
 true one (docs/ablations.md §3, §7). Yet a map refitted to *fixed* knots scores the true motion clearly
 best — the ±``init_depth_spread`` seeding bounds the relief that could trade against the motion. So
 each hypothesis is scored by that refit: the seeded map trained for ``init.search_steps`` iterations
-with the knots frozen, then its event loss on the same fixed windows of the init chunks.
+with the knots frozen, then its event loss on the same fixed windows, all on the first
+``init.search_frames`` chunks (more than the init's: over a longer baseline an orbit and its mirror image
+with the relief reversed no longer explain the events equally well).
 
 The hypotheses are the motions of proximity operations with the target ahead of the camera, at
 ``init.search_rate`` per frame: orbits of the point ``(0, 0, init_depth)`` about the camera's x and y
@@ -66,12 +68,17 @@ def directions(rate: float, depth: float) -> Iterator[Hypothesis]:
             yield Hypothesis(f"translate {s}{name}", v)
 
 
+def search_chunks(state: SlamState) -> int:
+    """Chunks the hypotheses are fitted and scored on: ``init.search_frames``, at least the init's."""
+    return min(max(state.cfg.init.search_frames, state.num_init_chunks()), state.data.n_chunks)
+
+
 def fit(state: SlamState, hyp: Hypothesis, reporter: StageReporter | None) -> SlamState:
     """A copy of ``state`` whose seeded map was optimised for ``init.search_steps`` iterations on
     ``hyp``'s frozen knots; ``state`` itself is left as it was. Every fit draws the same windows and
     random numbers, so scores differ by the hypothesis alone."""
     cfg, data = state.cfg, state.data
-    m = state.num_init_chunks()
+    m = search_chunks(state)
     trial = dataclasses.replace(
         state,
         traj=Trajectory(data.frames_us[: m + 1], hyp.knots(m + 1), cfg.trajectory.interpolation),
@@ -105,7 +112,7 @@ def poll_directions(depth: float) -> list[tuple[str, Tensor]]:
 def score(state: SlamState, hyp: Hypothesis, reporter: StageReporter | None) -> float:
     """Event loss on the fixed evaluation windows of the seeded map refitted to ``hyp``'s frozen knots."""
     cfg, data = state.cfg, state.data
-    m = state.num_init_chunks()
+    m = search_chunks(state)
     trial = fit(state, hyp, reporter)
     sampler = data.sampler(data.span(0, m), stage_seed(cfg.seed, "search", 0))
     losses = []
@@ -129,11 +136,14 @@ def search_motion(
     cfg = state.cfg.init
     depth = state.cfg.gaussians.init_depth
     tried: list[tuple[Hypothesis, float]] = []
+    scores: dict[tuple[float, ...], float] = {}  # a compass sweep can come back to a scored twist
 
     def trial(h: Hypothesis) -> float:
-        s = score(state, h, reporter)
-        tried.append((h, s))
-        return s
+        key = tuple(round(float(x), 12) for x in h.twist)
+        if key not in scores:
+            scores[key] = score(state, h, reporter)
+            tried.append((h, scores[key]))
+        return scores[key]
 
     def best_of(entries: list[tuple[Hypothesis, float]]) -> tuple[Hypothesis, float]:
         return min(entries, key=lambda hs: hs[1])
@@ -158,10 +168,12 @@ def search_motion(
             for sign in (1.0, -1.0):
                 if polls >= cfg.search_polls:
                     break
-                polls += 1
                 h = Hypothesis(f"{best.name} {'+-'[sign < 0]}{name}", best.twist + sign * step * direction)
-                if trial(h) < best_score:
-                    best, best_score = h, tried[-1][1]
+                n = len(tried)
+                s = trial(h)
+                polls += len(tried) - n
+                if s < best_score:
+                    best, best_score = h, s
                     improved = True
         if not improved:
             step *= 0.5
