@@ -37,10 +37,10 @@ def start_from_best_motion(state: SlamState, reporter: StageReporter | None = No
     best, tried = search_motion(state, reporter)
     with torch.no_grad():
         state.traj.base.copy_(best.knots(m + 1))
-    scores = dict(tried)
-    runner_up = min((s for name, s in tried if name != best.name), default=float("nan"))
+    scores = sorted(s for _, s in tried)  # the lowest is the best's (names can repeat)
+    runner_up = scores[1] if len(scores) > 1 else float("nan")
     record = StageRecord(
-        "search", _seq_frame(state, m), len(tried) * state.cfg.init.search_steps, scores[best.name],
+        "search", _seq_frame(state, m), len(tried) * state.cfg.init.search_steps, scores[0],
         time.perf_counter() - t0, 0, False, len(state.gaussians),
         note=f"best of {len(tried)} motions: {best.name} (next best loss {runner_up:.5f})",
     )  # fmt: skip
