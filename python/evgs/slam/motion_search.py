@@ -26,10 +26,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evgs.render import render
 from evgs.slam.lie import se3_exp
 from evgs.slam.loss import event_loss
-from evgs.slam.optimize import StageReporter, StageSpec, run_stage
+from evgs.slam.optimize import StageReporter, StageSpec, render_windows, run_stage
 from evgs.slam.state import SlamState, stage_seed
 from evgs.slam.trajectory import Trajectory
 
@@ -119,12 +118,7 @@ def score(state: SlamState, hyp: Hypothesis, reporter: StageReporter | None) -> 
     with torch.no_grad():
         for _ in range(EVAL_WINDOWS):
             win = data.windows(sampler, 1, 1)
-            out = render(
-                **trial.gaussians.render_inputs(),
-                viewmats=trial.traj.viewmats_at(np.concatenate([win.t_start, win.t_end])),
-                camera=data.camera, background=cfg.gaussians.background,
-            )  # fmt: skip
-            gray = out.color[..., 0]
+            gray = render_windows(trial, win, data.camera).color[..., 0]
             losses.append(float(event_loss(win.frames, gray[:1], gray[1:], cfg.loss).total))
     return float(np.mean(losses))
 
