@@ -27,3 +27,15 @@ def test_cli_help():
         [sys.executable, "-m", "evgs.cli", "--help"], capture_output=True, text=True, check=True
     )
     assert "events" in out.stdout
+
+
+@pytest.mark.parametrize("module", ["evgs", "evgs.cli"])
+def test_cli_as_module_reports_user_errors_in_one_line(module):
+    """Run as a module, the command must still catch the subcommands' UserError (one line, exit 2)."""
+    out = subprocess.run(
+        [sys.executable, "-m", module, "bench", "slam", "--presets", "no_such", "--frames", "2"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert out.returncode == 2, out.stderr
+    assert "Traceback" not in out.stderr
+    assert out.stderr.startswith("evgs: error: preset 'no_such'")

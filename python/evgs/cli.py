@@ -50,4 +50,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # As `python -m evgs.cli` this file runs as `__main__`, a second copy of the module whose UserError
+    # is not the one the subcommands raise (they import evgs.cli): hand over to the imported module.
+    from evgs.cli import main as imported_main
+
+    sys.exit(imported_main())
