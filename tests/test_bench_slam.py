@@ -5,6 +5,7 @@ skips."""
 from __future__ import annotations
 
 import csv
+import json
 import math
 import sys
 from pathlib import Path
@@ -145,7 +146,7 @@ def test_crashed_runs_become_failed_rows(tmp_path: Path, data_root: Path, monkey
         0: "import os, signal; b = b'x' * (300 << 20); os.kill(os.getpid(), signal.SIGKILL)",
         1: "import sys; print('loading'); sys.exit('evgs: error: boom')",
     }
-    monkeypatch.setattr(slam, "child_argv", lambda spec: [sys.executable, "-c", crash[spec.seed]])
+    monkeypatch.setattr(slam, "child_argv", lambda spec, _: [sys.executable, "-c", crash[spec.seed]])
     out = tmp_path / "suite"
     specs = slam.plan_runs(["tiny"], [0, 1], None, [], out, data_root)
     rows, (summary,), md = slam.run_suite(specs, out, [0, 1])
@@ -191,8 +192,30 @@ def test_tiny_suite_end_to_end_and_resume(tmp_path: Path, data_root: Path, monke
     def no_child(*_):
         raise AssertionError("a finished run was started again")
 
+    real_run_child = slam.run_child
     monkeypatch.setattr(slam, "run_child", no_child)
     assert main([*args, "--resume"]) == 0
     with open(out / "runs.csv", newline="") as f:
         (again,) = csv.DictReader(f)
     assert again == row
+
+    # A run interrupted after its last checkpoint (no metrics.json yet) continues with `evgs run --resume`
+    # in the same run directory, its log and wall time added to the first part's.
+    (run_dir / "metrics.json").unlink()
+    first_wall = float(json.loads((out / "tiny" / "seed0" / "child.json").read_text())["wall_s"])
+    calls = []
+
+    def resumed_child(argv, log_path, append=False):
+        calls.append((argv, append))
+        return real_run_child(argv, log_path, append)
+
+    monkeypatch.setattr(slam, "run_child", resumed_child)
+    assert main([*args, "--resume"]) == 0
+    ((argv, append),) = calls
+    assert argv[-3:] == ["--resume", str(run_dir), "--quiet"] and append
+    with open(out / "runs.csv", newline="") as f:
+        (resumed,) = csv.DictReader(f)
+    assert resumed["status"] == "ok" and resumed["run_dir"] == str(run_dir)
+    assert float(resumed["wall_s"]) > first_wall
+    assert resumed["ate_rmse"] == row["ate_rmse"]
+    assert "resumed at chunk" in (run_dir / "log.txt").read_text()

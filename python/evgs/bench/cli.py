@@ -34,7 +34,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data-root", type=Path, default=Path("data"), metavar="DIR",
                    help="sequences are DIR/synthetic/<preset> (default: data)")  # fmt: skip
     p.add_argument("--resume", action="store_true",
-                   help="continue the suite in --out: skip runs with a finished run directory")  # fmt: skip
+                   help="continue the suite in --out: skip finished runs, resume interrupted ones "
+                        "from their checkpoints")  # fmt: skip
     p.add_argument("--no-images", action="store_true", help="skip rendering and image metrics")
     p.set_defaults(func=run)
 

@@ -120,26 +120,28 @@ def plan_runs(
     return specs
 
 
-def child_argv(spec: RunSpec) -> list[str]:
-    """``evgs run`` of one spec, in this interpreter."""
-    # Not ``-m evgs.cli``: as ``__main__`` its UserError would be another class than the one raised.
-    argv = [sys.executable, "-c", "import sys; from evgs.cli import main; sys.exit(main(sys.argv[1:]))",
-            "run", "--seq", str(spec.sequence.absolute()), "--config", str(spec.config), "--out",
-            str(spec.slot.absolute()), "--quiet"]  # fmt: skip
+def child_argv(spec: RunSpec, interrupted: Path | None = None) -> list[str]:
+    """``evgs run`` of one spec in this interpreter, or ``evgs run --resume`` of its interrupted run."""
+    argv = [sys.executable, "-m", "evgs", "run"]
+    if interrupted is not None:
+        return [*argv, "--resume", str(interrupted.absolute()), "--quiet"]
+    argv += ["--seq", str(spec.sequence.absolute()), "--config", str(spec.config), "--out",
+             str(spec.slot.absolute()), "--quiet"]  # fmt: skip
     for item in spec.overrides:
         argv += ["--set", item]
     return argv
 
 
-def run_child(argv: list[str], log_path: Path) -> ChildResult:
-    """Run ``argv`` with its output in ``log_path``; its peak RSS from ``wait4`` (this child only)."""
+def run_child(argv: list[str], log_path: Path, append: bool = False) -> ChildResult:
+    """Run ``argv`` with its output in (or, ``append``, added to) ``log_path``; its peak RSS from
+    ``wait4`` (this child only)."""
     env = dict(os.environ)
     # The child imports the same evgs as this process, however this one found it.
     package_root = str(Path(evgs.__file__).resolve().parents[1])
     env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
     env["COLUMNS"] = "200"  # the log is a file: no wrapping of the run's messages at 80 columns
     log_path.parent.mkdir(parents=True, exist_ok=True)
-    with open(log_path, "wb") as log:
+    with open(log_path, "ab" if append else "wb") as log:
         t0 = time.perf_counter()
         proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, env=env)
         try:
@@ -156,6 +158,15 @@ def finished_run(slot: Path) -> Path | None:
     """The newest run directory in a slot that has ``metrics.json`` (written last by ``evgs run``)."""
     done = sorted(slot.glob("*/*/metrics.json"), key=lambda p: p.stat().st_mtime)
     return done[-1].parent if done else None
+
+
+def interrupted_run(slot: Path) -> Path | None:
+    """The newest run directory in a slot without ``metrics.json`` but with a checkpoint to go on from."""
+    from evgs.slam.run_dir import RunDir
+
+    runs = [p.parent for p in slot.glob("*/*/config.toml")]
+    open_runs = [r for r in runs if not (r / "metrics.json").exists() and RunDir(r).checkpoint_path.is_file()]
+    return max(open_runs, key=lambda r: r.stat().st_mtime) if open_runs else None
 
 
 def _failure(exit_code: int, log_path: Path) -> str:
@@ -203,13 +214,19 @@ def evaluate(run_dir: Path, images: bool) -> Row:
 
 
 def run_one(spec: RunSpec, resume: bool, images: bool) -> Row:
-    """Run (unless ``resume`` finds it finished) and evaluate one spec; any failure becomes the row's
-    ``error``."""
+    """Run and evaluate one spec; any failure becomes the row's ``error``. With ``resume`` a finished
+    run is only evaluated and an interrupted one continues from its checkpoint (when the first part's
+    exit was recorded, the wall times add up and the peak memory is the larger)."""
     row = _empty_row(spec)
     run_dir = finished_run(spec.slot) if resume else None
     if run_dir is None:
         spec.slot.mkdir(parents=True, exist_ok=True)
-        child = run_child(child_argv(spec), spec.log_path)
+        interrupted = interrupted_run(spec.slot) if resume else None
+        child = run_child(child_argv(spec, interrupted), spec.log_path, append=interrupted is not None)
+        if interrupted is not None and spec.child_json.is_file():
+            before = ChildResult(**json.loads(spec.child_json.read_text()))
+            child = ChildResult(child.exit_code, before.wall_s + child.wall_s,
+                                max(before.peak_rss_gib, child.peak_rss_gib))  # fmt: skip
         with atomic_path(spec.child_json) as tmp:
             tmp.write_text(json.dumps(child.__dict__))
         row.update(wall_s=child.wall_s, peak_rss_gib=child.peak_rss_gib)
