@@ -13,7 +13,14 @@ from evgs.sim.lights import Lighting
 from evgs.sim.materials import MATERIAL_IDS
 from evgs.sim.presets import preset
 from evgs.sim.render import Renderer
-from evgs.sim.scene import SURFACE_HALF_SIZE, _crater_profile, build_scene, surface, surface_heights
+from evgs.sim.scene import (
+    SURFACE_HALF_SIZE,
+    _crater_profile,
+    build_scene,
+    make_scene,
+    surface,
+    surface_heights,
+)
 from evgs.sim.trajectory import DESCENT_TILT_DEG, Trajectory
 
 FLAT = Lighting(sun_dir=(0.0, 0.0, 1.0), sun=0.0, ambient=1.0)
@@ -41,6 +48,9 @@ def test_terrain_is_deterministic_and_cratered(terrain):
     assert not np.array_equal(h, surface_heights(seed=1)[1])
     again = surface()
     np.testing.assert_array_equal(terrain.triangles, again.triangles)
+    # The simulation's seed draws the terrain; the default seed is the one the preset was tuned on.
+    np.testing.assert_array_equal(make_scene("surface", seed=0).triangles, terrain.triangles)
+    assert not np.array_equal(make_scene("surface", seed=1).triangles, terrain.triangles)
     np.testing.assert_array_equal(terrain.normals, again.normals)
     assert np.all(terrain.material == MATERIAL_IDS["regolith"])
     assert 50_000 < len(terrain.triangles) < 300_000  # moderate: the renderer and the ray cast stay fast

@@ -145,6 +145,13 @@ def test_any_mesh_file_can_be_the_target(tmp_path):
         load_mesh(tmp_path / "box.ply", material="gold")
 
 
+def test_built_in_targets_scale_about_their_origin():
+    base, big = make_scene("satellite"), make_scene("satellite", scale=2.5)
+    np.testing.assert_allclose(big.triangles, 2.5 * base.triangles)
+    np.testing.assert_array_equal(big.normals, base.normals)
+    np.testing.assert_array_equal(big.material, base.material)
+
+
 def test_sun_casts_shadows():
     floor = trimesh.creation.box(extents=(4.0, 4.0, 0.02))
     floor.apply_translation([0.0, 0.0, -0.01])

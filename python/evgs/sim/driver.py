@@ -68,7 +68,7 @@ def simulate(cfg: SimConfig, out: str | Path, *, progress: bool = True) -> Seque
     counts land in ``sequence.toml`` under ``[simulator.stats]``."""
     cfg.validate()
     camera = cfg.camera
-    scene = make_scene(cfg.target, cfg.material, cfg.mesh_scale)
+    scene = make_scene(cfg.target, cfg.material, cfg.mesh_scale, cfg.seed)
     trajectory = cfg.make_trajectory()
     t_end_us = round(trajectory.t_end * 1e6)
     frames_us = _regular_times(cfg.frame_rate, t_end_us)

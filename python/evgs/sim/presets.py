@@ -25,6 +25,7 @@ class SimConfig:
     material: str = "paint"
     """Material of a mesh file (built-in targets carry their own)."""
     mesh_scale: float = 1.0
+    """Size factor of the target (a mesh file is centred first; built-ins scale about their origin)."""
     lighting: str = "good"
     # Camera (DVXplorer-like 640×480, ~60° horizontal field of view).
     width: int = 640
@@ -71,6 +72,7 @@ class SimConfig:
     shadow_size: int = 2048
     """Side of the sun's shadow map in texels (it covers the whole scene: large scenes need more)."""
     seed: int = 0
+    """Sensor noise, and the terrain of the ``surface`` target."""
 
     @property
     def camera(self) -> Camera:
@@ -90,6 +92,7 @@ class SimConfig:
             ("dt_min_us", 1 <= self.dt_min_us <= self.dt_max_us, "≥ 1 and ≤ dt_max_us"),
             ("msaa", self.msaa >= 0, "≥ 0"),
             ("shadow_size", 64 <= self.shadow_size <= 8192, "in [64, 8192]"),
+            ("mesh_scale", self.mesh_scale > 0, "> 0"),
         ]
         for name, ok, need in checks:
             if not ok:

@@ -252,10 +252,12 @@ def load_mesh(path: str | Path, material: str = "paint", scale: float = 1.0) -> 
     return build_scene([(mesh, MATERIAL_IDS[material])])
 
 
-def make_scene(target: str, material: str = "paint", scale: float = 1.0) -> Scene:
-    """A built-in target by name, or a mesh file."""
+def make_scene(target: str, material: str = "paint", scale: float = 1.0, seed: int = SURFACE_SEED) -> Scene:
+    """A built-in target by name (the terrain drawn from ``seed``) scaled about its origin, or a mesh
+    file centred and scaled."""
     if target in TARGETS:
-        return TARGETS[target]()
+        scene = surface(seed) if target == "surface" else TARGETS[target]()
+        return Scene(scene.triangles * scale, scene.normals, scene.material) if scale != 1.0 else scene
     if not Path(target).is_file():
         raise ValueError(f"target {target!r} is neither a built-in ({', '.join(TARGETS)}) nor a mesh file")
     return load_mesh(target, material, scale)
