@@ -60,6 +60,7 @@ class InitConfig:
     search_range: float
     search_polls: int
     search_frames: int
+    search_holdout: int
 
 
 @dataclass(frozen=True)
@@ -274,9 +275,15 @@ def _check_ranges(cfg: Config, source: str) -> None:
     if cfg.scale.source == "target_size" and cfg.scale.target_size <= 0:
         problems.append("scale.source = 'target_size' needs scale.target_size > 0 (metres)")
     if cfg.init.motion_search and (
-        cfg.init.search_steps < 1 or cfg.init.search_rate <= 0 or cfg.init.search_range <= 1
+        cfg.init.search_steps < 1
+        or cfg.init.search_rate <= 0
+        or cfg.init.search_range <= 1
+        or cfg.init.search_holdout < 1
     ):
-        problems.append("init.motion_search needs search_steps >= 1, search_rate > 0 and search_range > 1")
+        problems.append(
+            "init.motion_search needs search_steps >= 1, search_rate > 0, search_range > 1 and "
+            "search_holdout >= 1"
+        )
     if not 0 <= cfg.loss.lambda_ssim <= 1:
         problems.append("loss.lambda_ssim must be in [0, 1]")
     positive = {

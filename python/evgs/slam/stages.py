@@ -34,15 +34,12 @@ def start_from_best_motion(state: SlamState, reporter: StageReporter | None = No
     """Set the init knots to the best constant-velocity hypothesis (:mod:`evgs.slam.motion_search`)."""
     t0 = time.perf_counter()
     m = state.num_init_chunks()
-    best, tried = search_motion(state, reporter)
+    found = search_motion(state, reporter)
     with torch.no_grad():
-        state.traj.base.copy_(best.knots(m + 1))
-    scores = sorted(s for _, s in tried)  # the lowest is the best's (names can repeat)
-    runner_up = scores[1] if len(scores) > 1 else float("nan")
+        state.traj.base.copy_(found.best.knots(m + 1))
     record = StageRecord(
-        "search", _seq_frame(state, m), len(tried) * state.cfg.init.search_steps, scores[0],
-        time.perf_counter() - t0, 0, False, len(state.gaussians),
-        note=f"best of {len(tried)} motions: {best.name} (next best loss {runner_up:.5f})",
+        "search", _seq_frame(state, m), found.steps, found.score, time.perf_counter() - t0, 0, False,
+        len(state.gaussians), note=f"best of {len(found.tried)} motions: {found.best.name}",
     )  # fmt: skip
     state.history.append(record)
     return record
