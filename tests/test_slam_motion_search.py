@@ -69,12 +69,31 @@ def test_search_finds_the_minimum_of_a_known_score(synth, monkeypatch):
 
     monkeypatch.setattr(motion_search, "score", fake_score)
     found = search_motion(state)
-    assert found.tried[0][0] == "still" and len(found.tried) == 11 + 4 + 48
-    assert found.steps == state.cfg.init.search_steps * (11 + 4 + 48)
+    # No motion, 10 directions at two rates, 2 × 4 sizes (some already scored), the compass polls.
+    assert found.tried[0][0] == "still" and 1 + 20 + 48 < len(found.tried) <= 1 + 20 + 2 * 4 + 48
+    assert found.steps == state.cfg.init.search_steps * len(found.tried)
     assert found.best.name.startswith("orbit -y")
     assert found.score == fake_score(None, found.best, 0, None) == min(s for _, s in found.tried)
     start = min(s for _, s in found.tried[:11])
     assert found.score < 0.05 * start
+    assert float((found.best.twist - truth).norm()) < 0.2 * float(truth.norm())
+
+
+def test_a_slow_motion_is_sized_before_it_is_compared_with_no_motion(synth, monkeypatch):
+    """A slow approach (docking_good's is half the nominal rate): at 0.4× the nominal rate, every basis
+    motion at the nominal rate scores worse than standing still; the half rate must still be tried, and
+    wins."""
+    state = synth_state(
+        synth, f"gaussians.init_depth={DEPTH}", f"init.search_rate={RATE}", "init.search_polls=24"
+    )
+    truth = 0.4 * next(h for h in directions(RATE, DEPTH) if h.name == "translate +z").twist
+    monkeypatch.setattr(
+        motion_search, "score", lambda state, hyp, steps, reporter: float((hyp.twist - truth).norm())
+    )
+    found = search_motion(state)
+    nominal = {name: s for name, s in found.tried[:21] if "×" not in name}
+    assert len(nominal) == 11 and min(nominal, key=nominal.get) == "still"
+    assert found.best.name.startswith("translate +z ×0.5")
     assert float((found.best.twist - truth).norm()) < 0.2 * float(truth.norm())
 
 
