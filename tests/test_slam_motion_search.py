@@ -69,8 +69,8 @@ def test_search_finds_the_minimum_of_a_known_score(synth, monkeypatch):
 
     monkeypatch.setattr(motion_search, "score", fake_score)
     found = search_motion(state)
-    # No motion, 10 directions at two rates, 2 × 4 sizes (some already scored), the compass polls.
-    assert found.tried[0][0] == "still" and 1 + 20 + 48 < len(found.tried) <= 1 + 20 + 2 * 4 + 48
+    # No motion, 10 directions, 4 sizes of the best one, the compass polls.
+    assert found.tried[0][0] == "still" and len(found.tried) == 11 + 4 + 48
     assert found.steps == state.cfg.init.search_steps * len(found.tried)
     assert found.best.name.startswith("orbit -y")
     assert found.score == fake_score(None, found.best, 0, None) == min(s for _, s in found.tried)
@@ -80,12 +80,11 @@ def test_search_finds_the_minimum_of_a_known_score(synth, monkeypatch):
 
 
 def test_a_slow_motion_is_sized_before_it_is_compared_with_no_motion(synth, monkeypatch):
-    """A slow approach (docking_good's is half the nominal rate): at 0.4× the nominal rate, every basis
-    motion at the nominal rate scores worse than standing still; the half rate must still be tried, and
-    wins."""
-    state = synth_state(
-        synth, f"gaussians.init_depth={DEPTH}", f"init.search_rate={RATE}", "init.search_polls=24"
-    )
+    """With ``search_half_rate``, a slow approach (docking_good's is half the nominal rate): at 0.4× the
+    nominal rate, every basis motion at the nominal rate scores worse than standing still; the half rate
+    must still be tried, and wins."""
+    sets = ["init.search_polls=24", "init.search_half_rate=true", "init.search_sized=2"]
+    state = synth_state(synth, f"gaussians.init_depth={DEPTH}", f"init.search_rate={RATE}", *sets)
     truth = 0.4 * next(h for h in directions(RATE, DEPTH) if h.name == "translate +z").twist
     monkeypatch.setattr(
         motion_search, "score", lambda state, hyp, steps, reporter: float((hyp.twist - truth).norm())
@@ -93,34 +92,44 @@ def test_a_slow_motion_is_sized_before_it_is_compared_with_no_motion(synth, monk
     found = search_motion(state)
     nominal = {name: s for name, s in found.tried[:21] if "×" not in name}
     assert len(nominal) == 11 and min(nominal, key=nominal.get) == "still"
+    # No motion, 10 directions at two rates, 2 × 4 sizes (some already scored), the compass polls.
+    assert 1 + 20 + 24 < len(found.tried) <= 1 + 20 + 2 * 4 + 24
     assert found.best.name.startswith("translate +z ×0.5")
     assert float((found.best.twist - truth).norm()) < 0.2 * float(truth.norm())
 
 
-def test_hypotheses_are_fitted_on_some_chunks_and_scored_on_the_next(synth):
+def test_hypotheses_are_fitted_on_some_chunks_and_scored_on_them_and_the_next(synth):
     state = synth_state(synth, "init.num_frames=3", "init.search_frames=4", "init.search_holdout=2")
     n = state.data.n_chunks
     assert n >= 7
     assert search_chunks(state) == (4, 2)
     short = synth_state(synth, "init.num_frames=3", f"init.search_frames={n}", "init.search_holdout=4")
     assert search_chunks(short) == (n - 1, 1)  # at least one chunk is left to score on
-    assert search_chunks(synth_state(synth, "init.num_frames=5", "init.search_frames=2"))[0] == 5
+    assert (
+        search_chunks(
+            synth_state(synth, "init.num_frames=5", "init.search_frames=2", "init.search_holdout=1")
+        )[0]
+        == 5
+    )
+    # Scored on the fitted chunks only: all of the sequence can be fitted.
+    assert search_chunks(synth_state(synth, f"init.search_frames={n}", "init.search_holdout=0")) == (n, 0)
 
 
 def test_refit_score_prefers_the_true_motion(synth):
     """The principle the search rests on: with the knots frozen, the map refitted to the true motion
-    predicts the next chunks' events better than the map refitted to no motion, the reversed motion or
-    twice the motion."""
+    explains the fitted chunks' events better than the map refitted to no motion or the reversed motion;
+    scored on the next chunk too, also better than twice the motion."""
     _, scene = synth
+    still = Hypothesis("still", torch.zeros(6, dtype=torch.float64))
     # One chunk ahead: the synthetic path accelerates, so a constant velocity extrapolates only so far.
-    state = synth_state(synth, "init.search_steps=60", "init.search_holdout=1")
-    m = state.num_init_chunks()
-    P = torch.as_tensor(scene.poses)
-    truth = Hypothesis("truth", se3_log(se3_inverse(P[0]) @ P[m]) / m)
-    s_true = score(state, truth, 60, None)
-    assert s_true < score(state, Hypothesis("still", torch.zeros(6, dtype=torch.float64)), 60, None)
-    assert s_true < score(state, truth.scaled(-1.0), 60, None)
-    assert s_true < score(state, truth.scaled(2.0), 60, None)
+    for holdout, wrong in ((0, (0.0, -1.0)), (1, (0.0, -1.0, 2.0))):
+        state = synth_state(synth, "init.search_steps=60", f"init.search_holdout={holdout}")
+        m = state.num_init_chunks()
+        P = torch.as_tensor(scene.poses)
+        truth = Hypothesis("truth", se3_log(se3_inverse(P[0]) @ P[m]) / m)
+        s_true = score(state, truth, 60, None)
+        for f in wrong:
+            assert s_true < score(state, truth.scaled(f) if f else still, 60, None), (holdout, f)
 
 
 def test_search_sets_the_init_knots_and_records_its_choice(synth):

@@ -61,6 +61,8 @@ class InitConfig:
     search_polls: int
     search_frames: int
     search_holdout: int
+    search_half_rate: bool
+    search_sized: int
 
 
 @dataclass(frozen=True)
@@ -278,11 +280,12 @@ def _check_ranges(cfg: Config, source: str) -> None:
         cfg.init.search_steps < 1
         or cfg.init.search_rate <= 0
         or cfg.init.search_range <= 1
-        or cfg.init.search_holdout < 1
+        or cfg.init.search_holdout < 0
+        or cfg.init.search_sized < 1
     ):
         problems.append(
-            "init.motion_search needs search_steps >= 1, search_rate > 0, search_range > 1 and "
-            "search_holdout >= 1"
+            "init.motion_search needs search_steps >= 1, search_rate > 0, search_range > 1, "
+            "search_holdout >= 0 and search_sized >= 1"
         )
     if not 0 <= cfg.loss.lambda_ssim <= 1:
         problems.append("loss.lambda_ssim must be in [0, 1]")

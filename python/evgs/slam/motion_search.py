@@ -7,18 +7,20 @@ true one (docs/ablations.md §3, §7). A map refitted to *fixed* knots separates
 hypothesis is scored by such a refit: the seeded map trained for ``init.search_steps`` iterations with
 the knots frozen on the first ``init.search_frames`` chunks (more than the init's: over a longer
 baseline an orbit and its mirror image with the relief reversed no longer explain the events equally
-well), then its event loss on fixed windows of those chunks and of the next ``init.search_holdout``,
-the velocity carried on. On the fitted chunks alone a wrong motion with a map bent to it did as well as
-the truth and the search over-estimated the motion 1.5–2×; on the chunks ahead alone, too little
-motion did best (docs/ablations.md §8).
+well), then its event loss on fixed windows of those chunks — and, with ``init.search_holdout`` > 0,
+of as many chunks after them, the velocity carried on. On the fitted chunks alone a wrong motion with a
+map bent to it can do as well as the truth, and the search over-estimates the motion 1.5–2×; on the
+chunks ahead alone, too little motion does best; the mean of both, with the basis at two rates, finds
+docking_good's approach but small orbits about the wrong axis on swirl (docs/ablations.md §8). So it is
+an option, off by default.
 
 The hypotheses are the motions of proximity operations with the target ahead of the camera, at
 ``init.search_rate`` per frame: orbits of the point ``(0, 0, init_depth)`` about the camera's x and y
 axes, approach / retreat along the optical axis, sideways translations, each in both directions, and no
-motion, each at the nominal rate and at half of it. The two best are sized over
-× ``search_range``^(±½, ±1), then a compass search in the same basis plus roll adds what the family
-leaves out (roll, mixtures, an orbit centre off ``init_depth``). The joint initialization starts from
-the winner.
+motion (``init.search_half_rate``: each also at half that rate). The best (``init.search_sized``)
+are sized over × ``search_range``^(±½, ±1), then a compass search in the same basis plus roll adds
+what the family leaves out (roll, mixtures, an orbit centre off ``init_depth``). The joint
+initialization starts from the winner.
 """
 
 from __future__ import annotations
@@ -37,7 +39,6 @@ from evgs.slam.state import SlamState, stage_seed
 from evgs.slam.trajectory import Trajectory
 
 EVAL_WINDOWS = 8  # fixed windows every hypothesis is scored on, in the fitted chunks and in those ahead
-SIZED_DIRECTIONS = 2  # basis motions whose magnitude is searched further
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,10 +75,11 @@ def directions(rate: float, depth: float) -> Iterator[Hypothesis]:
 
 def search_chunks(state: SlamState) -> tuple[int, int]:
     """Chunks the hypotheses are fitted on (``init.search_frames``, at least the init's) and, after them,
-    the chunks they are scored on (``init.search_holdout``; fewer if the sequence ends, at least one)."""
+    the chunks they are also scored on (``init.search_holdout``; fewer if the sequence ends, at least
+    one unless it is 0)."""
     cfg, n = state.cfg.init, state.data.n_chunks
-    m = min(max(cfg.search_frames, state.num_init_chunks()), n - 1)
-    return m, max(1, min(cfg.search_holdout, n - m))
+    m = min(max(cfg.search_frames, state.num_init_chunks()), n - (cfg.search_holdout > 0))
+    return m, min(cfg.search_holdout, n - m)
 
 
 def fit(state: SlamState, hyp: Hypothesis, steps: int, reporter: StageReporter | None) -> SlamState:
@@ -128,7 +130,7 @@ def score(state: SlamState, hyp: Hypothesis, steps: int, reporter: StageReporter
     n = m + holdout
     trial.traj = Trajectory(data.frames_us[: n + 1], hyp.knots(n + 1), cfg.trajectory.interpolation)
     means = []
-    for span in (data.span(0, m), data.span_with_min(m, n)):
+    for span in [data.span(0, m)] + ([data.span_with_min(m, n)] if holdout else []):
         sampler = data.sampler(span, stage_seed(cfg.seed, "search", 0))
         losses = []
         with torch.no_grad():
@@ -196,13 +198,13 @@ def search_motion(state: SlamState, reporter: StageReporter | None = None) -> Se
     cfg = state.cfg.init
     depth = state.cfg.gaussians.init_depth
     trial = Scorer(state, cfg.search_steps, reporter)
-    # Each direction at the nominal rate and at half of it, and the best directions then sized over the
+    # Each direction at the nominal rate (and at half of it), and the best directions then sized over the
     # ladder, before they are compared with each other and with no motion: at twice its true rate the
-    # true direction loses to wrong ones (docking_good's approach to every orbit).
+    # true direction can lose to wrong ones (docking_good's approach to every orbit).
     still, *moves = directions(cfg.search_rate, depth)
     trial(still)
-    sized = [min((h, h.scaled(0.5)), key=trial) for h in moves]
-    for h in sorted(sized, key=trial)[:SIZED_DIRECTIONS]:
+    sized = [min((h, h.scaled(0.5)), key=trial) if cfg.search_half_rate else h for h in moves]
+    for h in sorted(sized, key=trial)[: cfg.search_sized]:
         for e in (-1.0, -0.5, 0.5, 1.0):
             trial(h.scaled(cfg.search_range**e))
     best, best_score = trial.best()
