@@ -64,7 +64,7 @@ def test_search_finds_the_minimum_of_a_known_score(synth, monkeypatch):
     truth = 1.7 * orbit_y + torch.tensor([0, 0, 0.2 * RATE * DEPTH, 0, 0, 0.3 * RATE], dtype=torch.float64)
     weights = torch.tensor([4.0, 4.0, 1.0, 1.0, 1.0, 1.0], dtype=torch.float64)
 
-    def fake_score(state, hyp, steps, reporter):
+    def fake_score(state, hyp, reporter):
         return float((weights * (hyp.twist - truth) ** 2).sum())
 
     monkeypatch.setattr(motion_search, "score", fake_score)
@@ -73,7 +73,7 @@ def test_search_finds_the_minimum_of_a_known_score(synth, monkeypatch):
     assert found.tried[0][0] == "still" and len(found.tried) == 11 + 4 + 48
     assert found.steps == state.cfg.init.search_steps * len(found.tried)
     assert found.best.name.startswith("orbit -y")
-    assert found.score == fake_score(None, found.best, 0, None) == min(s for _, s in found.tried)
+    assert found.score == fake_score(None, found.best, None) == min(s for _, s in found.tried)
     start = min(s for _, s in found.tried[:11])
     assert found.score < 0.05 * start
     assert float((found.best.twist - truth).norm()) < 0.2 * float(truth.norm())
@@ -87,7 +87,7 @@ def test_a_slow_motion_is_sized_before_it_is_compared_with_no_motion(synth, monk
     state = synth_state(synth, f"gaussians.init_depth={DEPTH}", f"init.search_rate={RATE}", *sets)
     truth = 0.4 * next(h for h in directions(RATE, DEPTH) if h.name == "translate +z").twist
     monkeypatch.setattr(
-        motion_search, "score", lambda state, hyp, steps, reporter: float((hyp.twist - truth).norm())
+        motion_search, "score", lambda state, hyp, reporter: float((hyp.twist - truth).norm())
     )
     found = search_motion(state)
     nominal = {name: s for name, s in found.tried[:21] if "×" not in name}
@@ -127,9 +127,9 @@ def test_refit_score_prefers_the_true_motion(synth):
         m = state.num_init_chunks()
         P = torch.as_tensor(scene.poses)
         truth = Hypothesis("truth", se3_log(se3_inverse(P[0]) @ P[m]) / m)
-        s_true = score(state, truth, 60, None)
+        s_true = score(state, truth, None)
         for f in wrong:
-            assert s_true < score(state, truth.scaled(f) if f else still, 60, None), (holdout, f)
+            assert s_true < score(state, truth.scaled(f) if f else still, None), (holdout, f)
 
 
 def test_search_sets_the_init_knots_and_records_its_choice(synth):

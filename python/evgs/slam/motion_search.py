@@ -82,8 +82,8 @@ def search_chunks(state: SlamState) -> tuple[int, int]:
     return m, min(cfg.search_holdout, n - m)
 
 
-def fit(state: SlamState, hyp: Hypothesis, steps: int, reporter: StageReporter | None) -> SlamState:
-    """A copy of ``state`` whose seeded map was optimised for ``steps`` iterations on
+def fit(state: SlamState, hyp: Hypothesis, reporter: StageReporter | None) -> SlamState:
+    """A copy of ``state`` whose seeded map was optimised for ``init.search_steps`` iterations on
     ``hyp``'s frozen knots; ``state`` itself is left as it was. Every fit draws the same windows and
     random numbers, so scores differ by the hypothesis alone."""
     cfg, data = state.cfg, state.data
@@ -96,7 +96,7 @@ def fit(state: SlamState, hyp: Hypothesis, steps: int, reporter: StageReporter |
         history=[],
     )
     spec = StageSpec(
-        "search", m, steps, data.span(0, m), cfg.data.training_batch_size,
+        "search", m, cfg.init.search_steps, data.span(0, m), cfg.data.training_batch_size,
         stage_seed(cfg.seed, "search", m), [], range(m + 1), train_gaussians=True, lr_boost=cfg.init.lr_boost,
     )  # fmt: skip
     run_stage(trial, spec, reporter)
@@ -118,15 +118,16 @@ def poll_directions(depth: float) -> list[tuple[str, Tensor]]:
     return out
 
 
-def score(state: SlamState, hyp: Hypothesis, steps: int, reporter: StageReporter | None) -> float:
-    """Event loss of the seeded map refitted to ``hyp``'s frozen knots: the mean of its losses on fixed
-    windows of the fitted chunks and of the chunks after them, where the constant velocity carries on.
+def score(state: SlamState, hyp: Hypothesis, reporter: StageReporter | None) -> float:
+    """Event loss of the seeded map refitted to ``hyp``'s frozen knots on fixed windows of the fitted
+    chunks — with ``init.search_holdout``, the mean of that and of the same on the chunks after them,
+    where the constant velocity carries on.
     In the fitted chunks a wrong motion with a map bent to it can explain the events as well as the
     truth, but it does not predict the next ones; ahead, an unmodelled change of speed or a part of the
     target not yet mapped favours too little motion, which the fitted chunks do not."""
     cfg, data = state.cfg, state.data
     m, holdout = search_chunks(state)
-    trial = fit(state, hyp, steps, reporter)
+    trial = fit(state, hyp, reporter)
     n = m + holdout
     trial.traj = Trajectory(data.frames_us[: n + 1], hyp.knots(n + 1), cfg.trajectory.interpolation)
     means = []
@@ -143,18 +144,18 @@ def score(state: SlamState, hyp: Hypothesis, steps: int, reporter: StageReporter
 
 
 class Scorer:
-    """Scores hypotheses by refits of a given length, each twist once (a compass sweep can come back to
-    a scored twist), and keeps every (hypothesis, score) tried in order."""
+    """Scores each twist once (a compass sweep can come back to a scored twist) and keeps every
+    (hypothesis, score) tried in order."""
 
-    def __init__(self, state: SlamState, steps: int, reporter: StageReporter | None) -> None:
-        self.state, self.steps, self.reporter = state, steps, reporter
+    def __init__(self, state: SlamState, reporter: StageReporter | None) -> None:
+        self.state, self.reporter = state, reporter
         self.tried: list[tuple[Hypothesis, float]] = []
         self._scores: dict[tuple[float, ...], float] = {}
 
     def __call__(self, h: Hypothesis) -> float:
         key = tuple(round(float(x), 12) for x in h.twist)
         if key not in self._scores:
-            self._scores[key] = score(self.state, h, self.steps, self.reporter)
+            self._scores[key] = score(self.state, h, self.reporter)
             self.tried.append((h, self._scores[key]))
         return self._scores[key]
 
@@ -163,7 +164,7 @@ class Scorer:
 
 
 def compass(
-    trial: Scorer, start: Hypothesis, step: float, polls: int, directions: list[tuple[str, Tensor]]
+    trial: Scorer, start: Hypothesis, step: float, polls: int, moves: list[tuple[str, Tensor]]
 ) -> tuple[Hypothesis, float]:
     """Compass search from ``start``: ± ``step`` along each direction, halving the step after a sweep
     without improvement, until ``polls`` new hypotheses were scored."""
@@ -171,7 +172,7 @@ def compass(
     n0 = len(trial.tried)
     while len(trial.tried) - n0 < polls:
         improved = False
-        for name, direction in directions:
+        for name, direction in moves:
             for sign in (1.0, -1.0):
                 if len(trial.tried) - n0 >= polls:
                     break
@@ -197,7 +198,7 @@ def search_motion(state: SlamState, reporter: StageReporter | None = None) -> Se
     """The best-scoring hypothesis, and what the search tried."""
     cfg = state.cfg.init
     depth = state.cfg.gaussians.init_depth
-    trial = Scorer(state, cfg.search_steps, reporter)
+    trial = Scorer(state, reporter)
     # Each direction at the nominal rate (and at half of it), and the best directions then sized over the
     # ladder, before they are compared with each other and with no motion: at twice its true rate the
     # true direction can lose to wrong ones (docking_good's approach to every orbit).
@@ -215,4 +216,4 @@ def search_motion(state: SlamState, reporter: StageReporter | None = None) -> Se
         rate = float(best.twist[3:].norm()) or float(best.twist[:3].norm()) / depth
         best, best_score = compass(trial, best, 0.25 * rate, cfg.search_polls, poll_directions(depth))
     tried = [(h.name, s) for h, s in trial.tried]
-    return SearchResult(best, best_score, tried, trial.steps * len(tried))
+    return SearchResult(best, best_score, tried, cfg.search_steps * len(tried))
