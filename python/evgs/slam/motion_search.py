@@ -128,10 +128,13 @@ def score(state: SlamState, hyp: Hypothesis, reporter: StageReporter | None) -> 
     cfg, data = state.cfg, state.data
     m, holdout = search_chunks(state)
     trial = fit(state, hyp, reporter)
-    n = m + holdout
-    trial.traj = Trajectory(data.frames_us[: n + 1], hyp.knots(n + 1), cfg.trajectory.interpolation)
+    spans = [data.span(0, m)]
+    if holdout:  # the fitted knots, carried on over the chunks ahead
+        n = m + holdout
+        trial.traj = Trajectory(data.frames_us[: n + 1], hyp.knots(n + 1), cfg.trajectory.interpolation)
+        spans.append(data.span_with_min(m, n))
     means = []
-    for span in [data.span(0, m)] + ([data.span_with_min(m, n)] if holdout else []):
+    for span in spans:
         sampler = data.sampler(span, stage_seed(cfg.seed, "search", 0))
         losses = []
         with torch.no_grad():
