@@ -136,5 +136,7 @@ def test_config_follows_the_sequence_name():
 def test_range_scale_without_a_range_meter_is_refused_before_the_run(seq_dir, tmp_path, capsys):
     args = ["run", "--seq", str(seq_dir), "--config", "synthetic/tiny", "--out", str(tmp_path), "--quiet"]
     assert main([*args, "--set", "scale.source=range"]) == 2
-    assert "needs range.csv" in capsys.readouterr().err
+    assert "scale.source = 'range' needs range.csv" in capsys.readouterr().err
+    assert main([*args, "--set", "scale.source=none", "--set", "scale.range_weight=1"]) == 2
+    assert "scale.range_weight > 0 needs range.csv" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # no run directory was started

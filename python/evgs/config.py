@@ -172,6 +172,7 @@ class ScaleConfig:
     source: Literal["none", "range", "target_size"]
     target_size: float
     min_alpha: float
+    range_weight: float
 
 
 @dataclass(frozen=True)
@@ -274,6 +275,8 @@ def _check_ranges(cfg: Config, source: str) -> None:
     ]:
         if not 0 < value < 1:
             problems.append(f"{key} must be in (0, 1)")
+    if cfg.scale.range_weight < 0:
+        problems.append("scale.range_weight must be >= 0 (0 = the range meter only scales the outputs)")
     if cfg.scale.source == "target_size" and cfg.scale.target_size <= 0:
         problems.append("scale.source = 'target_size' needs scale.target_size > 0 (metres)")
     if cfg.init.motion_search and (

@@ -17,6 +17,7 @@ from evgs.config import Config
 from evgs.io_util import atomic_path
 from evgs.slam.gaussians import Gaussians
 from evgs.slam.guards import BrightnessAnchor
+from evgs.slam.range_prior import RangePrior
 from evgs.slam.state import Position, SlamState, StageRecord
 from evgs.slam.trajectory import Trajectory
 from evgs.slam.windows import EventData
@@ -70,4 +71,5 @@ def restore(snap: dict, cfg: Config, data: EventData) -> SlamState:
         anchor=BrightnessAnchor(cfg.guards.brightness_weight, snap["anchor_reference"]),
         position=Position(**snap["position"]),
         history=[StageRecord(**r) for r in snap["history"]],
+        range_prior=RangePrior.for_run(cfg, data),
     )

@@ -108,10 +108,12 @@ def run(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, seq=str(folder.resolve()))
         seq = Sequence.load(folder)
         data = EventData.from_sequence(seq, cfg.data)
-        if cfg.scale.source == "range" and data.ranges is None:
-            raise UserError(
-                f"{folder}: scale.source = 'range' needs range.csv (a range meter); set scale.source"
-            )
+        uses = {
+            "scale.source = 'range'": cfg.scale.source == "range",
+            "scale.range_weight > 0": cfg.scale.range_weight > 0,
+        }
+        for key in (k for k, on in uses.items() if on and data.ranges is None):
+            raise UserError(f"{folder}: {key} needs range.csv (a range meter); change {key.split()[0]}")
         run_dir = RunDir.create(args.out or Path(cfg.output.runs_dir), seq.name, cfg)
         state = new_state(cfg, data)
         run_dir.log(f"run of {seq.root} ({len(data.events)} events, {data.n_chunks} chunks)")

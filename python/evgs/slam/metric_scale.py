@@ -15,14 +15,14 @@ render unchanged. So a run ends with one similarity that makes its outputs metri
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from evgs.config import ScaleConfig
-from evgs.render import render
 from evgs.slam.gaussians import Gaussians
+from evgs.slam.range_prior import covered_ratios
 from evgs.slam.state import SlamState
 
 
@@ -33,30 +33,22 @@ class ScaleEstimate:
     source: str
 
 
-@torch.no_grad()
 def range_scale(state: SlamState, t_us: np.ndarray, ranges: np.ndarray, min_alpha: float) -> ScaleEstimate:
     """Median of ``range / rendered depth`` on the principal ray over the samples inside the run."""
-    traj = state.traj
-    lo, hi = int(traj.t_us[0]), int(traj.t_us[-1])
-    keep = (t_us >= lo) & (t_us <= hi) & np.isfinite(ranges) & (ranges > 0)
-    if not keep.any():
-        raise ValueError(f"scale: no range sample lies inside the run's time span [{lo}, {hi}] µs")
-    cam = state.data.camera
-    principal = replace(cam, width=1, height=1, cx=0.5, cy=0.5, distortion=())  # pixel centre on the axis
-    out = render(
-        **state.gaussians.render_inputs(), viewmats=traj.viewmats_at(t_us[keep]), camera=principal,
-        background=state.cfg.gaussians.background,
+    keep = np.isfinite(ranges) & (ranges > 0)
+    ratios, inside = covered_ratios(
+        state.gaussians, state.traj, t_us[keep], ranges[keep], state.data.camera,
+        state.cfg.gaussians.background, min_alpha,
     )  # fmt: skip
-    alpha, depth = out.alpha.reshape(-1), out.depth.reshape(-1)
-    covered = alpha >= min_alpha
-    if not bool(covered.any()):
+    if not inside:
+        lo, hi = int(state.traj.t_us[0]), int(state.traj.t_us[-1])
+        raise ValueError(f"scale: no range sample lies inside the run's time span [{lo}, {hi}] µs")
+    if not len(ratios):
         raise ValueError(
             f"scale: the map covers the image centre (alpha ≥ {min_alpha:g}) at none of the "
-            f"{int(keep.sum())} range samples; lower scale.min_alpha or use scale.source = 'target_size'"
+            f"{inside} range samples; lower scale.min_alpha or use scale.source = 'target_size'"
         )
-    mean_depth = (depth[covered] / alpha[covered]).double().numpy()
-    ratios = ranges[keep][covered.numpy()] / mean_depth
-    return ScaleEstimate(float(np.median(ratios)), int(covered.sum()), "range")
+    return ScaleEstimate(float(np.median(ratios)), len(ratios), "range")
 
 
 @torch.no_grad()

@@ -34,7 +34,7 @@ from torch import Tensor
 
 from evgs.slam.lie import se3_exp
 from evgs.slam.loss import event_loss
-from evgs.slam.optimize import StageReporter, StageSpec, render_windows, run_stage
+from evgs.slam.optimize import StageReporter, StageSpec, range_penalty, range_unit, render_windows, run_stage
 from evgs.slam.state import SlamState, stage_seed
 from evgs.slam.trajectory import Trajectory
 
@@ -133,7 +133,7 @@ def score(state: SlamState, hyp: Hypothesis, reporter: StageReporter | None) -> 
         n = m + holdout
         trial.traj = Trajectory(data.frames_us[: n + 1], hyp.knots(n + 1), cfg.trajectory.interpolation)
         spans.append(data.span_with_min(m, n))
-    means = []
+    means, unit = [], range_unit(trial)
     for span in spans:
         sampler = data.sampler(span, stage_seed(cfg.seed, "search", 0))
         losses = []
@@ -142,7 +142,7 @@ def score(state: SlamState, hyp: Hypothesis, reporter: StageReporter | None) -> 
                 win = data.windows(sampler, 1, 1)
                 gray = render_windows(trial, win, data.camera).color[..., 0]
                 losses.append(float(event_loss(win.frames, gray[:1], gray[1:], cfg.loss).total))
-        means.append(np.mean(losses))
+            means.append(np.mean(losses) + float(range_penalty(trial, span, unit)))
     return float(np.mean(means))
 
 

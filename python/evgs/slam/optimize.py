@@ -71,17 +71,37 @@ class Convergence:
         return prev - cur < self.min_rel_change * abs(prev)
 
 
+def window_times(win: Windows) -> np.ndarray:
+    """(2B,) µs of the views a batch renders: every window's start, then every window's end."""
+    return np.concatenate([win.t_start, win.t_end])
+
+
 def render_windows(state: SlamState, win: Windows, camera: Camera) -> RenderResult:
-    """One render of the 2B views: every window's start pose, then every window's end pose."""
-    viewmats = state.traj.viewmats_at(np.concatenate([win.t_start, win.t_end]))
+    """One render of the 2B views at :func:`window_times`."""
+    viewmats = state.traj.viewmats_at(window_times(win))
     return render(
         **state.gaussians.render_inputs(), viewmats=viewmats, camera=camera,
         background=state.cfg.gaussians.background,
     )  # fmt: skip
 
 
-def loss_step(state: SlamState, spec: StageSpec, win: Windows, factor: int) -> StepResult:
-    """Forward pass and loss of one batch (no backward)."""
+def range_unit(state: SlamState) -> float | None:
+    """The range meter's metres per map unit at this point of the run (None without a meter)."""
+    return None if state.range_prior is None else state.range_prior.unit(state.gaussians, state.traj)
+
+
+def range_penalty(state: SlamState, span: tuple[int, int], unit: float | None) -> Tensor | float:
+    """The range meter's term (:mod:`evgs.slam.range_prior`) over the samples in the chunks of the event
+    index range ``span``; 0 without a meter."""
+    if state.range_prior is None:
+        return 0.0
+    return state.range_prior.penalty(state.gaussians, state.traj, *state.data.time_span(span), unit)
+
+
+def loss_step(
+    state: SlamState, spec: StageSpec, win: Windows, factor: int, unit: float | None = None
+) -> StepResult:
+    """Forward pass and loss of one batch (no backward); ``unit``: the range meter's (:func:`range_unit`)."""
     cfg = state.cfg
     camera = scaled_camera(state.data.camera, factor)
     out = render_windows(state, win, camera)
@@ -95,6 +115,7 @@ def loss_step(state: SlamState, spec: StageSpec, win: Windows, factor: int) -> S
     total = terms.total
     if spec.anchored:
         total = total + state.anchor.penalty(out.color, out.alpha)
+    total = total + range_penalty(state, spec.span, unit)
     w = cfg.trajectory.smoothness
     if w > 0 and len(spec.trainable_knots):
         total = total + w * state.traj.acceleration_penalty(cfg.gaussians.bounding_size).float()
@@ -162,6 +183,7 @@ def run_stage(state: SlamState, spec: StageSpec, reporter: StageReporter | None 
             reset_opacity(state.gaussians, g_opt, cfg.strategy.reset_opacity)
     coarse_end = int(econ.coarse_fraction * spec.iterations) if econ.coarse_factor > 1 else 0
     stopper = Convergence(econ.patience, econ.min_rel_change)
+    unit = range_unit(state)
     t0, n_events, blockers, stopped, loss, step = time.perf_counter(), 0, 0, False, float("nan"), None
     it = -1
     for it in range(spec.iterations):
@@ -172,7 +194,7 @@ def run_stage(state: SlamState, spec: StageSpec, reporter: StageReporter | None 
         if g_opt is not None:
             g_opt.zero_grad(set_to_none=True)
         set_lr_boost([pose_opt, g_opt], lr_boost(spec, it))
-        step = loss_step(state, spec, win, factor)
+        step = loss_step(state, spec, win, factor, unit)
         step.total.backward()
         if pose_opt is not None:
             pose_opt.step()

@@ -19,6 +19,7 @@ from evgs.slam.gaussians import Gaussians
 from evgs.slam.guards import BrightnessAnchor
 from evgs.slam.metric_scale import apply_scale, estimate_scale
 from evgs.slam.optimize import StageReporter
+from evgs.slam.range_prior import RangePrior
 from evgs.slam.run_dir import RunDir
 from evgs.slam.stages import global_ba, initialize, map_window, start_from_best_motion, track
 from evgs.slam.state import SlamState, StageRecord
@@ -33,7 +34,8 @@ def new_state(cfg: Config, data: EventData) -> SlamState:
     gaussians = initial_gaussians(cfg.gaussians, data, m, generator)
     knots = random_knots(m + 1, cfg.trajectory.init_pose_noise, generator)
     traj = Trajectory(data.frames_us[: m + 1], knots, cfg.trajectory.interpolation)
-    return SlamState(cfg, data, traj, gaussians, generator, BrightnessAnchor(cfg.guards.brightness_weight))
+    anchor = BrightnessAnchor(cfg.guards.brightness_weight)
+    return SlamState(cfg, data, traj, gaussians, generator, anchor, range_prior=RangePrior.for_run(cfg, data))
 
 
 def initial_gaussians(g: GaussiansConfig, data: EventData, m: int, generator: torch.Generator) -> Gaussians:

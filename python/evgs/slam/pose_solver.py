@@ -17,6 +17,7 @@ eq. 8 is minimised: the SSIM term regularises the map's brightness, which tracki
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -25,74 +26,116 @@ from torch import Tensor
 from evgs.render import render
 from evgs.slam.lie import se3_exp, se3_inverse
 from evgs.slam.loss import event_mask, pointwise_error, predicted_events, valid_mask
-from evgs.slam.optimize import StageReporter, StageSpec
+from evgs.slam.optimize import StageReporter, StageSpec, range_unit, window_times
+from evgs.slam.range_prior import huber, huber_weights
 from evgs.slam.state import SlamState, StageRecord
 from evgs.slam.windows import Windows, scaled_camera
 
 MAX_STEP = 100.0  # longest accepted step per coordinate, in central-difference steps (0.1 rad at 1e-3)
 
 
-def residual_images(
-    state: SlamState, knot: int, deltas: Tensor, win: Windows, factor: int
-) -> tuple[Tensor, Tensor]:
-    """Residuals ``Ê − E`` (V, B, h, w) and rendered alpha (V, 2, B, h, w) (window start, end) for V trial
-    increments (V, 6) of ``knot``, the other knots as they are."""
+@dataclass
+class Residuals:
+    """What V trial increments of the knot predict for one batch of B windows."""
+
+    events: Tensor  # (V, B, h, w) ``Ê − E``
+    alpha: Tensor  # (V, 2, B, h, w) rendered alpha at the window starts and ends
+    ranges: Tensor | None  # (V, S) the range meter's relative errors (NaN = unused), None without samples
+
+
+def residuals(
+    state: SlamState, knot: int, deltas: Tensor, win: Windows, factor: int, span: tuple[int, int],
+    unit: float | None,
+) -> Residuals:  # fmt: skip
+    """The residuals of V trial increments (V, 6) of ``knot``, the other knots as they are; the range
+    meter's (metres per map unit ``unit``) at its samples in the chunks of the event index range ``span``."""
     traj, cfg = state.traj, state.cfg
     with torch.no_grad():
         knots = traj.knots()
-        times = np.concatenate([win.t_start, win.t_end])
-        poses = []
+        times = window_times(win)
+        trials = []
         for d in deltas:
             trial = knots.clone()
             trial[knot] = knots[knot] @ se3_exp(d)
-            poses.append(traj.pose_at(times, trial))
+            trials.append(trial)
+        poses = [traj.pose_at(times, trial) for trial in trials]
         viewmats = se3_inverse(torch.cat(poses)).float()
         out = render(
             **state.gaussians.render_inputs(), viewmats=viewmats,
             camera=scaled_camera(state.data.camera, factor), background=cfg.gaussians.background,
         )  # fmt: skip
+        ranges = None
+        if state.range_prior is not None and unit is not None:
+            t_lo, t_hi = state.data.time_span(span)
+            t_r, metres = state.range_prior.samples(
+                max(t_lo, int(traj.t_us[0])), min(t_hi, int(traj.t_us[-1]))
+            )
+            if len(t_r):
+                range_views = se3_inverse(torch.cat([traj.pose_at(t_r, trial) for trial in trials])).float()
+                q = state.range_prior.residuals(
+                    state.gaussians, range_views, np.tile(metres, len(deltas)), unit
+                )
+                ranges = q.reshape(len(deltas), len(t_r))
     b = len(win.starts)
     gray = out.color[..., 0].reshape(len(deltas), 2, b, *out.color.shape[1:3])
     alpha = out.alpha.reshape(len(deltas), 2, b, *out.alpha.shape[1:3])
-    resid = predicted_events(gray[:, 0], gray[:, 1], cfg.loss) - win.frames
-    return resid, alpha
+    return Residuals(predicted_events(gray[:, 0], gray[:, 1], cfg.loss) - win.frames, alpha, ranges)
+
+
+def range_cost(state: SlamState, q: Tensor | None, used: Tensor | None) -> float:
+    """The range meter's term of the cost for one row of residuals (0 without a prior or used views;
+    NaN, so the step is rejected, if a used view lost its coverage)."""
+    if state.range_prior is None or q is None or used is None or not bool(used.any()):
+        return 0.0
+    return state.range_prior.weight * float(huber(q[used].double()).mean())
 
 
 def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None = None) -> StageRecord:
     """Optimise the single trainable knot of ``spec`` by Levenberg–Marquardt; rebases at the end."""
     cfg, data, traj = state.cfg, state.data, state.traj
-    tc, econ, kind = cfg.tracking, cfg.economy, cfg.loss.event_loss
+    tc, econ, kind, prior = cfg.tracking, cfg.economy, cfg.loss.event_loss, state.range_prior
     (knot,) = spec.trainable_knots
     sampler = data.sampler(spec.span, spec.seed)
     traj.set_trainable([knot])
     # Rotations move a pixel by f·ε; translations by f·ε/depth: matched at the scene's scale.
     eps = torch.tensor([tc.lm_step * cfg.gaussians.bounding_size] * 3 + [tc.lm_step] * 3, dtype=torch.float64)
     variants = torch.cat([torch.zeros(1, 6, dtype=torch.float64), torch.diag(eps), -torch.diag(eps)])
-    delta, lam = torch.zeros(6, dtype=torch.float64), tc.lm_damping
+    delta, lam, unit = torch.zeros(6, dtype=torch.float64), tc.lm_damping, range_unit(state)
     coarse_end = int(econ.coarse_fraction * spec.iterations) if econ.coarse_factor > 1 else 0
     t0, n_events, loss, stopped, it = time.perf_counter(), 0, float("nan"), False, -1
     for it in range(spec.iterations):
         factor = econ.coarse_factor if it < coarse_end else 1
         win = data.windows(sampler, spec.batch, factor)
-        resid, alpha = residual_images(state, knot, delta + variants, win, factor)
-        mask = valid_mask(alpha[0, 0], alpha[0, 1], tc.mask_border // factor, tc.mask_alpha)
+        res = residuals(state, knot, delta + variants, win, factor, spec.span, unit)
+        mask = valid_mask(res.alpha[0, 0], res.alpha[0, 1], tc.mask_border // factor, tc.mask_alpha)
         if cfg.loss.event_mask_threshold >= 0:
             mask &= event_mask(win.frames, cfg.loss.event_mask_threshold)
         n_events += win.n_events
         if int(mask.sum()) < 6:  # nothing to constrain the pose with at this level
             continue
-        r = resid[:, mask].double()  # (13, P)
+        r = res.events[:, mask].double()  # (13, P)
         jac = (r[1:7] - r[7:13]) / (2 * eps[:, None])  # (6, P)
         r0 = r[0]
         w = 1.0 / r0.abs().clamp(min=cfg.data.event_contrast) if kind == "l1" else torch.ones_like(r0)
         hess = (jac * w) @ jac.T
         grad = (jac * w) @ r0
         cost0 = float(pointwise_error(r0, kind).mean())
+        used = None
+        if prior is not None and res.ranges is not None:  # the range meter's rows: same views, increments
+            used = ~torch.isnan(res.ranges).any(0)
+            if bool(used.any()):
+                q = res.ranges[:, used].double()
+                jq = (q[1:7] - q[7:13]) / (2 * eps[:, None])
+                # hess and grad are of P·cost (MSE) or 2P·cost (L1 by IRLS: |r| ≈ r²/2|r₀| + const).
+                wq = huber_weights(q[0]) * len(r0) * (2 if kind == "l1" else 1) * prior.weight / q.shape[1]
+                hess, grad = hess + (jq * wq) @ jq.T, grad + (jq * wq) @ q[0]
+                cost0 += range_cost(state, res.ranges[0], used)
         step = -torch.linalg.solve(hess + lam * torch.diag(hess.diagonal()) + 1e-12 * torch.eye(6), grad)
         cost1 = float("inf")  # a non-finite or implausibly long step (a near-singular system) is rejected
         if bool(torch.isfinite(step).all()) and float((step.abs() / eps).max()) <= MAX_STEP:
-            trial_resid, _ = residual_images(state, knot, (delta + step)[None], win, factor)
-            cost1 = float(pointwise_error(trial_resid[0][mask].double(), kind).mean())
+            trial = residuals(state, knot, (delta + step)[None], win, factor, spec.span, unit)
+            cost1 = float(pointwise_error(trial.events[0][mask].double(), kind).mean())
+            cost1 += range_cost(state, None if trial.ranges is None else trial.ranges[0], used)
         if cost1 < cost0:
             delta, lam, loss = delta + step, max(lam / 3, 1e-7), cost1
             converged = bool((step.abs() < tc.lm_tolerance * eps).all())

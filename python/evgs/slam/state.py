@@ -15,6 +15,7 @@ import torch
 from evgs.config import Config
 from evgs.slam.gaussians import Gaussians
 from evgs.slam.guards import BrightnessAnchor
+from evgs.slam.range_prior import RangePrior
 from evgs.slam.trajectory import Trajectory
 from evgs.slam.windows import EventData
 
@@ -64,6 +65,7 @@ class SlamState:
     position: Position = field(default_factory=Position)
     history: list[StageRecord] = field(default_factory=list)
     metric: dict = field(default_factory=dict)  # the metric-scale estimate applied to the outputs
+    range_prior: RangePrior | None = None  # the range meter's loss term (scale.range_weight > 0)
 
     def num_init_chunks(self) -> int:
         """``m``: chunks of the initialization (fewer when the sequence is shorter)."""

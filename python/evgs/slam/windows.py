@@ -107,6 +107,13 @@ class EventData:
             first -= 1
         return self.span(first, stop)
 
+    def time_span(self, span: tuple[int, int]) -> tuple[int, int]:
+        """µs of the frames enclosing the events of index range ``span`` (its chunks' boundaries)."""
+        t, f = self.events.t, self.frames_us
+        first = max(int(np.searchsorted(f, t[span[0]], side="right")) - 1, 0)
+        last = min(int(np.searchsorted(f, t[span[1] - 1], side="right")), len(f) - 1)
+        return int(f[first]), int(f[last])
+
     def sampler(self, span: tuple[int, int], seed: int) -> WindowSampler:
         c = self.cfg
         try:

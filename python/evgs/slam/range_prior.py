@@ -1,0 +1,141 @@
+"""A range meter inside the optimisation (``scale.range_weight`` > 0).
+
+The event loss cannot see scale, and sees motion along the optical axis only through the slow looming
+of the image: an approach at the wrong speed, or an orbit at the wrong rate with the relief scaled to
+match, explains the events almost as well. A range meter (ELOPE's, the simulator's ``range.csv``)
+measures the distance along the optical axis at the image centre: the expected depth ``D̄`` of a 1×1
+render on the principal ray. Its *ratios* between times are what the trajectory lacks: along an
+approach they fix the speed, and as the ray sweeps the target they fix the relief the motion must
+agree with.
+
+So every stage adds ``range_weight · mean(h(q))``, ``q = D̄ · u / r − 1``, over the range samples in its
+chunks whose principal ray the map covers (alpha ≥ ``scale.min_alpha``), each rendered at the
+trajectory's pose at the sample's own time (no interpolation: the range jumps where the ray crosses an
+edge). ``h`` is ``q²`` up to ``HUBER`` and linear beyond, so a sample on an edge or on a part the map
+lacks cannot dominate. ``u`` (metres per map unit) is the median ratio ``r / D̄`` over every sample
+the trajectory has reached so far, re-estimated at the start of each stage (the run's scale is free
+until its end, :mod:`evgs.slam.metric_scale`). The term moves the poses only: the Gaussians are the
+events' to place — free to move, a few of them on the principal ray would echo any range sequence
+back (an orbit with a star of surfaces about its centre), and the motion search could not tell an
+orbit from an approach.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from evgs.config import Config
+from evgs.data.sequence import Camera
+from evgs.render import render
+from evgs.slam.gaussians import Gaussians
+from evgs.slam.trajectory import Trajectory
+from evgs.slam.windows import EventData
+
+HUBER = 0.05  # relative range error beyond which a sample counts linearly (an edge, a part not mapped)
+
+
+def principal_camera(camera: Camera) -> Camera:
+    """A 1×1 camera whose only pixel centre lies on ``camera``'s principal ray (distortion-free there)."""
+    return replace(camera, width=1, height=1, cx=0.5, cy=0.5, distortion=())
+
+
+def principal_depth(
+    gaussians: Gaussians, viewmats: Tensor, camera: Camera, background: float, map_grad: bool = True
+) -> tuple[Tensor, Tensor]:
+    """``(alpha, mean depth D/alpha)`` (V,) on the principal ray of each view; differentiable in the
+    views, and in the Gaussians unless ``map_grad`` is false."""
+    inputs = gaussians.render_inputs()
+    if not map_grad:
+        inputs = {k: v.detach() for k, v in inputs.items()}
+    out = render(**inputs, viewmats=viewmats, camera=principal_camera(camera), background=background)
+    alpha, depth = out.alpha.reshape(-1), out.depth.reshape(-1)
+    return alpha, depth / alpha.clamp(min=1e-6)
+
+
+@torch.no_grad()
+def covered_ratios(
+    gaussians: Gaussians, traj: Trajectory, t_us: np.ndarray, metres: np.ndarray, camera: Camera,
+    background: float, min_alpha: float,
+) -> tuple[np.ndarray, int]:  # fmt: skip
+    """``range / D̄`` at the samples inside the trajectory's time span whose principal ray the map covers,
+    and how many samples lay inside."""
+    inside = (t_us >= int(traj.t_us[0])) & (t_us <= int(traj.t_us[-1]))
+    if not inside.any():
+        return np.zeros(0), 0
+    alpha, depth = principal_depth(gaussians, traj.viewmats_at(t_us[inside]), camera, background)
+    covered = (alpha >= min_alpha).numpy()
+    return metres[inside][covered] / depth.double().numpy()[covered], int(inside.sum())
+
+
+def huber(q: Tensor) -> Tensor:
+    """``q²`` for ``|q| ≤ HUBER``, continued linearly (with the same slope) beyond."""
+    a = q.abs()
+    return torch.where(a <= HUBER, q * q, HUBER * (2 * a - HUBER))
+
+
+def huber_weights(q: Tensor) -> Tensor:
+    """IRLS weights of :func:`huber`: minimising ``Σ w·q²`` with them takes the same Gauss–Newton step."""
+    return (HUBER / q.abs().clamp(min=HUBER)).to(q.dtype)
+
+
+@dataclass(frozen=True)
+class RangePrior:
+    t_us: np.ndarray  # (S,) sample times, increasing
+    ranges: np.ndarray  # (S,) metres, finite and positive
+    weight: float
+    min_alpha: float
+    camera: Camera
+    background: float
+
+    @classmethod
+    def for_run(cls, cfg: Config, data: EventData) -> RangePrior | None:
+        """The prior of a run on ``data`` (None when ``scale.range_weight`` is 0)."""
+        if cfg.scale.range_weight == 0:
+            return None
+        if data.ranges is None:
+            raise ValueError("scale.range_weight > 0 needs the sequence's range meter (range.csv)")
+        t, r = (np.asarray(a) for a in data.ranges)
+        keep = np.isfinite(r) & (r > 0)
+        order = np.argsort(t[keep], kind="stable")
+        t, r = t[keep][order].astype(np.int64), r[keep][order].astype(np.float64)
+        s = cfg.scale
+        return cls(t, r, s.range_weight, s.min_alpha, data.camera, cfg.gaussians.background)
+
+    def samples(self, t_lo: int, t_hi: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(t_us, metres)`` of the samples with ``t_lo <= t <= t_hi``."""
+        keep = (self.t_us >= t_lo) & (self.t_us <= t_hi)
+        return self.t_us[keep], self.ranges[keep]
+
+    def unit(self, gaussians: Gaussians, traj: Trajectory) -> float | None:
+        """Metres per map unit now: the median ``r / D̄`` over the covered samples the trajectory has
+        reached (None if none is)."""
+        ratios, _ = covered_ratios(
+            gaussians, traj, self.t_us, self.ranges, self.camera, self.background, self.min_alpha
+        )
+        return float(np.median(ratios)) if len(ratios) else None
+
+    def residuals(self, gaussians: Gaussians, viewmats: Tensor, metres: np.ndarray, unit: float) -> Tensor:
+        """(V,) ``D̄ · unit / r − 1`` of views with ranges ``metres`` (V,), differentiable in the views
+        only; NaN where the map does not cover the view's principal ray."""
+        r = torch.from_numpy(np.asarray(metres, dtype=np.float64)).float()
+        alpha, depth = principal_depth(gaussians, viewmats, self.camera, self.background, map_grad=False)
+        q = depth * unit / r - 1
+        return torch.where(alpha >= self.min_alpha, q, torch.full_like(q, float("nan")))
+
+    def penalty(
+        self, gaussians: Gaussians, traj: Trajectory, t_lo: int, t_hi: int, unit: float | None
+    ) -> Tensor:
+        """``weight · mean(h(q))`` over the used samples between ``t_lo`` and ``t_hi`` µs (and inside the
+        trajectory); 0 when there is none or no unit yet."""
+        t, metres = self.samples(max(t_lo, int(traj.t_us[0])), min(t_hi, int(traj.t_us[-1])))
+        if len(t) == 0 or unit is None:
+            return torch.zeros(())
+        q = self.residuals(gaussians, traj.viewmats_at(t), metres, unit)
+        used = ~torch.isnan(q)
+        if not bool(used.any()):
+            return torch.zeros(())
+        return self.weight * huber(q[used]).mean()

@@ -1,0 +1,186 @@
+"""The range meter inside the optimisation (``scale.range_weight``) on a scene whose truth is known."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("evgs.render")
+
+from evgs.config import load_config  # noqa: E402
+from evgs.render import render  # noqa: E402
+from evgs.slam.gaussians import Gaussians  # noqa: E402
+from evgs.slam.guards import BrightnessAnchor  # noqa: E402
+from evgs.slam.lie import se3_inverse, se3_log  # noqa: E402
+from evgs.slam.metric_scale import apply_scale  # noqa: E402
+from evgs.slam.range_prior import HUBER, RangePrior, huber, huber_weights, principal_camera  # noqa: E402
+from evgs.slam.stages import track  # noqa: E402
+from evgs.slam.state import SlamState  # noqa: E402
+from evgs.slam.trajectory import Trajectory  # noqa: E402
+from evgs.slam.windows import EventData  # noqa: E402
+from slam_synth import make_sequence  # noqa: E402
+
+UNIT = 2.5  # metres per map unit of the states the tests build
+
+
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory):
+    return make_sequence(tmp_path_factory.mktemp("seq") / "synth")
+
+
+def state_with_meter(synth, *sets: str) -> SlamState:
+    """The GT scene and knots in map units (shrunk by ``UNIT``), the sequence given a perfect range
+    meter (the metric scene's depth on the principal ray at the frames), the prior built as a run
+    builds it."""
+    seq, scene = synth
+    with torch.no_grad():
+        viewmats = torch.linalg.inv(torch.as_tensor(scene.poses)).float()
+        out = render(
+            **scene.gaussians.render_inputs(), viewmats=viewmats, camera=principal_camera(seq.camera)
+        )
+    metres = (out.depth / out.alpha).reshape(-1).double().numpy()
+    cfg = load_config("synthetic/tiny", ["data.event_contrast=0.2", "gaussians.bounding_size=1.0", *sets])
+    data = EventData.from_sequence(seq, cfg.data)
+    data = dataclasses.replace(data, ranges=(scene.frames_us.copy(), metres))
+    state = SlamState(
+        cfg, data, Trajectory(scene.frames_us, scene.poses), Gaussians.from_state(scene.gaussians.state()),
+        torch.Generator().manual_seed(0), BrightnessAnchor(0.0), range_prior=RangePrior.for_run(cfg, data),
+    )  # fmt: skip
+    apply_scale(state, 1 / UNIT)
+    return state
+
+
+def test_no_prior_without_weight_and_a_clear_error_without_a_meter(synth):
+    seq, _ = synth
+    cfg = load_config("synthetic/tiny", ["data.event_contrast=0.2"])
+    data = EventData.from_sequence(seq, cfg.data)
+    assert RangePrior.for_run(cfg, data) is None  # range_weight = 0: the meter only scales the outputs
+    weighted = load_config("synthetic/tiny", ["data.event_contrast=0.2", "scale.range_weight=1"])
+    with pytest.raises(ValueError, match="range.csv"):
+        RangePrior.for_run(weighted, data)
+    with pytest.raises(Exception, match="range_weight"):
+        load_config("synthetic/tiny", ["scale.range_weight=-1"])
+
+
+def test_the_unit_is_the_median_ratio_and_ignores_what_is_not_a_range(synth):
+    state = state_with_meter(synth, "scale.range_weight=1")
+    prior, traj = state.range_prior, state.traj
+    assert prior.unit(state.gaussians, traj) == pytest.approx(UNIT, rel=1e-4)
+    # Samples that are not ranges (no return, zero) are dropped; a minority of wrong ones (an edge, a
+    # part the map lacks) does not move the median.
+    t, r = state.data.ranges
+    bad = r.copy()
+    bad[3], bad[5], bad[1] = np.nan, 0.0, 3 * r[1]
+    noisy = RangePrior.for_run(state.cfg, dataclasses.replace(state.data, ranges=(t, bad)))
+    assert len(noisy.t_us) == len(t) - 2
+    assert noisy.unit(state.gaussians, traj) == pytest.approx(UNIT, rel=1e-4)
+    # Before the trajectory reaches a sample, or where the map covers no principal ray: no unit yet.
+    assert prior.unit(state.gaussians, Trajectory(t[:1] - 10**6, traj.knots()[:1].detach())) is None
+    assert dataclasses.replace(prior, min_alpha=1.1).unit(state.gaussians, traj) is None
+
+
+def test_residuals_vanish_at_the_truth_and_measure_relative_error(synth):
+    state = state_with_meter(synth, "scale.range_weight=1")
+    prior, traj = state.range_prior, state.traj
+    t, metres = prior.samples(int(traj.t_us[0]), int(traj.t_us[-1]))
+    assert len(t) == len(traj)
+    with torch.no_grad():
+        vm = traj.viewmats_at(t)
+        assert float(prior.residuals(state.gaussians, vm, metres, UNIT).abs().max()) < 1e-4
+        # A meter reading 10 % long at the same unit: every residual is 1/1.1 − 1.
+        q = prior.residuals(state.gaussians, vm, metres * 1.1, UNIT)
+        assert torch.allclose(q, torch.tensor(1 / 1.1 - 1), atol=1e-4)
+        # The penalty uses the samples of the span asked for, inside the trajectory; none is 0.
+        long = dataclasses.replace(prior, ranges=prior.ranges * 1.1)
+        expected = float(huber(torch.tensor(1 / 1.1 - 1)))
+        assert float(long.penalty(state.gaussians, traj, int(t[2]), int(t[3]), UNIT)) == pytest.approx(
+            expected, rel=1e-3
+        )
+        assert float(long.penalty(state.gaussians, traj, int(t[-1]) + 1, int(t[-1]) + 10**6, UNIT)) == 0.0
+        assert float(long.penalty(state.gaussians, traj, int(t[0]), int(t[-1]), None)) == 0.0
+        # Views whose principal ray the map does not cover are not used.
+        uncovered = dataclasses.replace(prior, min_alpha=1.1)
+        assert bool(torch.isnan(uncovered.residuals(state.gaussians, vm, metres, UNIT)).all())
+        assert float(uncovered.penalty(state.gaussians, traj, int(t[0]), int(t[-1]), UNIT)) == 0.0
+
+
+def test_huber_is_quadratic_then_linear_and_its_irls_weights_agree():
+    q = torch.tensor([-0.3, -HUBER, -0.01, 0.0, 0.02, HUBER, 0.2], dtype=torch.float64, requires_grad=True)
+    h = huber(q)
+    small = q.abs() <= HUBER
+    assert torch.allclose(h[small], q[small] ** 2)
+    assert torch.allclose(h[~small], HUBER * (2 * q[~small].abs() - HUBER))
+    (grad,) = torch.autograd.grad(h.sum(), q)
+    # The Gauss–Newton gradient of Σ w·q² with the IRLS weights is the true gradient.
+    assert torch.allclose(2 * huber_weights(q.detach()) * q.detach(), grad)
+
+
+def test_penalty_gradient_matches_finite_differences(synth):
+    """The penalty's gradient w.r.t. a knot's increment (through the rasterizer's depth and alpha
+    gradients) against central differences of the penalty itself."""
+    state = state_with_meter(synth, "scale.range_weight=1")
+    prior, traj = state.range_prior, state.traj
+    with torch.no_grad():  # move knot 3 off the truth so the penalty has a slope
+        traj.delta[3] = torch.tensor([0.01, -0.02, 0.05, 0.01, 0.0, -0.01], dtype=traj.delta.dtype)
+    traj.set_trainable([3])
+    lo, hi = int(traj.t_us[2]), int(traj.t_us[4])
+    traj.delta.grad = None
+    prior.penalty(state.gaussians, traj, lo, hi, UNIT * 1.05).backward()
+    # The poses only: the map is the events' to shape.
+    assert all(p.grad is None or not bool(p.grad.any()) for p in state.gaussians.params.values())
+    analytic = traj.delta.grad[3].double().clone()
+    numeric = torch.zeros(6, dtype=torch.float64)
+    eps = 1e-3
+    with torch.no_grad():
+        base = traj.delta[3].clone()
+        for i in range(6):
+            values = []
+            for sign in (1.0, -1.0):
+                traj.delta[3] = base
+                traj.delta[3, i] += sign * eps
+                values.append(float(prior.penalty(state.gaussians, traj, lo, hi, UNIT * 1.05)))
+            numeric[i] = (values[0] - values[1]) / (2 * eps)
+        traj.delta[3] = base
+    assert float(analytic.norm()) > 1e-3
+    assert torch.allclose(analytic, numeric, rtol=0.05, atol=0.02 * float(numeric.norm())), (
+        analytic,
+        numeric,
+    )
+
+
+@pytest.mark.parametrize(
+    "solver_sets",
+    [("tracking.solver=lm", "tracking.num_opti_steps=8"),
+     ("tracking.solver=adam", "tracking.num_opti_steps=40", "trajectory.pose_lr=3e-3")],
+    ids=["lm", "adam"],
+)  # fmt: skip
+def test_tracking_follows_the_meter_along_the_optical_axis(synth, solver_sets):
+    """The meter reads the newest frame 5 % short of the truth the events were made from: with a heavy
+    range weight tracking moves the new knot most of the way to the meter along its optical axis;
+    without the prior it stays at the truth. So both solvers minimise the range term."""
+    seq, scene = synth
+    k = 4
+    moved = {}
+    for weight in (0.0, 1000.0):
+        sets = [
+            *solver_sets,
+            f"scale.range_weight={weight}",
+            "economy.coarse_factor=1",
+            "tracking.mask_alpha=-1",
+        ]
+        state = state_with_meter(synth, *sets)
+        t, metres = state.data.ranges
+        short = metres.copy()
+        short[k + 1 :] *= 0.95
+        if weight > 0:
+            state.range_prior = dataclasses.replace(state.range_prior, ranges=short)
+        T_gt = state.traj.knots()[k + 1].detach().clone()
+        state.traj = Trajectory(t[: k + 1], state.traj.knots()[: k + 1].detach())
+        track(state, k, pose=T_gt)
+        xi = se3_log(se3_inverse(T_gt.double()) @ state.traj.knots()[k + 1].detach().double())
+        moved[weight] = float(xi[2]) * UNIT / metres[k + 1]  # along the optical axis, fraction of the range
+    assert abs(moved[0.0]) < 0.01, moved
+    assert 0.03 < moved[1000.0] < 0.06, moved  # forward, most of the way to the shorter reading
