@@ -148,3 +148,43 @@ def test_search_sets_the_init_knots_and_records_its_choice(synth):
     for k, v in state.gaussians.state().items():
         assert torch.equal(v, before[k])
     assert np.isfinite(record.loss)
+
+
+def test_smooth_refits_run_a_fixed_schedule_and_score_nearby_motions_alike(synth):
+    """``init.search_smooth``: no densification, pruning or early switch, so every refit runs all its
+    steps on the seeded Gaussians, and motions 2 % apart score far closer than the truth and no motion."""
+    _, scene = synth
+    state = synth_state(synth, "init.search_steps=60", "init.search_smooth=true", "strategy.refine_start=10")
+    m = state.num_init_chunks()
+    P = torch.as_tensor(scene.poses)
+    truth = Hypothesis("truth", se3_log(se3_inverse(P[0]) @ P[m]) / m)
+    trial = motion_search.fit(state, truth, None)
+    assert len(trial.gaussians) == len(state.gaussians)
+    assert trial.history[-1].iterations == 60 and trial.history[-1].pruned_blockers == 0
+    s = {f: score(state, truth.scaled(f), None) for f in (0.98, 1.0, 1.02)}
+    still = score(state, Hypothesis("still", torch.zeros(6, dtype=torch.float64)), None)
+    assert max(abs(s[0.98] - s[1.0]), abs(s[1.02] - s[1.0])) < 0.1 * (still - s[1.0]), (s, still)
+
+
+def test_the_range_meter_adds_to_the_score_and_leaves_the_refit_alone(synth):
+    """``init.search_range_weight``: a meter that contradicts the motion (it reads the camera receding
+    5 % per frame) raises the score by the weight times the range term; the refit does not see the
+    term (the knots are frozen, the Gaussians are the events'), so the event part is unchanged and the
+    score is linear in the weight."""
+    from evgs.slam.range_prior import RangePrior
+
+    _, scene = synth
+    metres = 5.0 * (1 + 0.05 * np.arange(len(scene.frames_us)))
+    P = torch.as_tensor(scene.poses)
+    scores = {}
+    for weight in (0.0, 10.0, 20.0):
+        state = synth_state(synth, "init.search_steps=30")  # the sequence has no meter: added below
+        init = dataclasses.replace(state.cfg.init, search_range_weight=weight)
+        state.cfg = dataclasses.replace(state.cfg, init=init)
+        state.data = dataclasses.replace(state.data, ranges=(scene.frames_us.copy(), metres))
+        state.range_prior = RangePrior.for_run(state.cfg, state.data)
+        m = state.num_init_chunks()
+        scores[weight] = score(state, Hypothesis("truth", se3_log(se3_inverse(P[0]) @ P[m]) / m), None)
+    added = scores[10.0] - scores[0.0]
+    assert added > 1e-4, scores
+    assert scores[20.0] - scores[0.0] == pytest.approx(2 * added, rel=1e-3)

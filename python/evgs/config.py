@@ -63,6 +63,8 @@ class InitConfig:
     search_holdout: int
     search_half_rate: bool
     search_sized: int
+    search_smooth: bool
+    search_range_weight: float
 
 
 @dataclass(frozen=True)
@@ -275,8 +277,8 @@ def _check_ranges(cfg: Config, source: str) -> None:
     ]:
         if not 0 < value < 1:
             problems.append(f"{key} must be in (0, 1)")
-    if cfg.scale.range_weight < 0:
-        problems.append("scale.range_weight must be >= 0 (0 = the range meter only scales the outputs)")
+    if cfg.scale.range_weight < 0 or cfg.init.search_range_weight < 0:
+        problems.append("scale.range_weight and init.search_range_weight must be >= 0 (0 = off)")
     if cfg.scale.source == "target_size" and cfg.scale.target_size <= 0:
         problems.append("scale.source = 'target_size' needs scale.target_size > 0 (metres)")
     if cfg.init.motion_search and (

@@ -98,6 +98,7 @@ def fit(state: SlamState, hyp: Hypothesis, reporter: StageReporter | None) -> Sl
     spec = StageSpec(
         "search", m, cfg.init.search_steps, data.span(0, m), cfg.data.training_batch_size,
         stage_seed(cfg.seed, "search", m), [], range(m + 1), train_gaussians=True, lr_boost=cfg.init.lr_boost,
+        adaptive=not cfg.init.search_smooth,
     )  # fmt: skip
     run_stage(trial, spec, reporter)
     return trial
@@ -133,7 +134,8 @@ def score(state: SlamState, hyp: Hypothesis, reporter: StageReporter | None) -> 
         n = m + holdout
         trial.traj = Trajectory(data.frames_us[: n + 1], hyp.knots(n + 1), cfg.trajectory.interpolation)
         spans.append(data.span_with_min(m, n))
-    means, unit = [], range_unit(trial)
+    weight = cfg.init.search_range_weight
+    means, unit = [], range_unit(trial, weight)
     for span in spans:
         sampler = data.sampler(span, stage_seed(cfg.seed, "search", 0))
         losses = []
@@ -142,7 +144,7 @@ def score(state: SlamState, hyp: Hypothesis, reporter: StageReporter | None) -> 
                 win = data.windows(sampler, 1, 1)
                 gray = render_windows(trial, win, data.camera).color[..., 0]
                 losses.append(float(event_loss(win.frames, gray[:1], gray[1:], cfg.loss).total))
-            means.append(np.mean(losses) + float(range_penalty(trial, span, unit)))
+            means.append(np.mean(losses) + float(range_penalty(trial, span, unit, weight)))
     return float(np.mean(means))
 
 

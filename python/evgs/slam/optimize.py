@@ -45,6 +45,9 @@ class StageSpec:
     masked: bool = False  # tracking's border / low-alpha mask
     anchored: bool = False  # brightness anchor term
     lr_boost: float = 1.0  # every Adam rate starts this many times higher, decaying to 1× at the end
+    # False: a fixed schedule, no densification, pruning or early switches, so the result is a smooth
+    # function of the fixed knots (the motion search compares refits of nearby motions)
+    adaptive: bool = True
 
 
 @dataclass
@@ -85,17 +88,22 @@ def render_windows(state: SlamState, win: Windows, camera: Camera) -> RenderResu
     )  # fmt: skip
 
 
-def range_unit(state: SlamState) -> float | None:
-    """The range meter's metres per map unit at this point of the run (None without a meter)."""
-    return None if state.range_prior is None else state.range_prior.unit(state.gaussians, state.traj)
+def range_unit(state: SlamState, weight: float) -> float | None:
+    """The range meter's metres per map unit at this point of the run (None without a meter, or when
+    its term has weight 0 and is not needed)."""
+    if state.range_prior is None or weight == 0:
+        return None
+    return state.range_prior.unit(state.gaussians, state.traj)
 
 
-def range_penalty(state: SlamState, span: tuple[int, int], unit: float | None) -> Tensor | float:
-    """The range meter's term (:mod:`evgs.slam.range_prior`) over the samples in the chunks of the event
-    index range ``span``; 0 without a meter."""
-    if state.range_prior is None:
+def range_penalty(
+    state: SlamState, span: tuple[int, int], unit: float | None, weight: float
+) -> Tensor | float:
+    """``weight`` × the range meter's term (:mod:`evgs.slam.range_prior`) over the samples in the chunks of
+    the event index range ``span``; 0 without a meter or a unit."""
+    if state.range_prior is None or weight == 0:
         return 0.0
-    return state.range_prior.penalty(state.gaussians, state.traj, *state.data.time_span(span), unit)
+    return weight * state.range_prior.penalty(state.gaussians, state.traj, *state.data.time_span(span), unit)
 
 
 def loss_step(
@@ -115,7 +123,7 @@ def loss_step(
     total = terms.total
     if spec.anchored:
         total = total + state.anchor.penalty(out.color, out.alpha)
-    total = total + range_penalty(state, spec.span, unit)
+    total = total + range_penalty(state, spec.span, unit, cfg.scale.range_weight)
     w = cfg.trajectory.smoothness
     if w > 0 and len(spec.trainable_knots):
         total = total + w * state.traj.acceleration_penalty(cfg.gaussians.bounding_size).float()
@@ -183,7 +191,7 @@ def run_stage(state: SlamState, spec: StageSpec, reporter: StageReporter | None 
             reset_opacity(state.gaussians, g_opt, cfg.strategy.reset_opacity)
     coarse_end = int(econ.coarse_fraction * spec.iterations) if econ.coarse_factor > 1 else 0
     stopper = Convergence(econ.patience, econ.min_rel_change)
-    unit = range_unit(state)
+    unit = range_unit(state, cfg.scale.range_weight)
     t0, n_events, blockers, stopped, loss, step = time.perf_counter(), 0, 0, False, float("nan"), None
     it = -1
     for it in range(spec.iterations):
@@ -204,20 +212,21 @@ def run_stage(state: SlamState, spec: StageSpec, reporter: StageReporter | None 
                 strategy.accumulate(grad2d, step.out.radii, step.camera.width, step.camera.height)
             g_opt.step()
             clamp_colors_(state.gaussians, cfg.guards.max_color)
-            if it > 0 and it % cfg.strategy.refine_every == 0:  # before refining: radii still align
+            if spec.adaptive and it > 0 and it % cfg.strategy.refine_every == 0:  # radii still align
                 blockers += prune_blockers(state, spec, strategy, g_opt, step)
-            strategy.step(state.gaussians, g_opt, it, state.generator)
+            if spec.adaptive:
+                strategy.step(state.gaussians, g_opt, it, state.generator)
         loss = float(step.total.detach())
         n_events += win.n_events
         if reporter is not None:
             reporter.advance(state, spec, it, loss, n_events, time.perf_counter() - t0)
-        if stopper.update(loss):
+        if spec.adaptive and stopper.update(loss):
             if factor > 1:  # the coarse level has converged: go on at full resolution
                 coarse_end, stopper = it + 1, Convergence(econ.patience, econ.min_rel_change)
             elif it + 1 >= econ.min_fraction * spec.iterations and spec.lr_boost == 1.0:
                 stopped = True  # (a decaying schedule runs to its end: it plans on the small final rates)
                 break
-    if spec.train_gaussians and step is not None:
+    if spec.train_gaussians and spec.adaptive and step is not None:
         blockers += prune_blockers(state, spec, strategy, g_opt, step)
     set_gaussians_trainable(state, True)
     traj.rebase()

@@ -87,7 +87,7 @@ def range_cost(state: SlamState, q: Tensor | None, used: Tensor | None) -> float
     NaN, so the step is rejected, if a used view lost its coverage)."""
     if state.range_prior is None or q is None or used is None or not bool(used.any()):
         return 0.0
-    return state.range_prior.weight * float(huber(q[used].double()).mean())
+    return state.cfg.scale.range_weight * float(huber(q[used].double()).mean())
 
 
 def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None = None) -> StageRecord:
@@ -100,7 +100,11 @@ def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None =
     # Rotations move a pixel by f·ε; translations by f·ε/depth: matched at the scene's scale.
     eps = torch.tensor([tc.lm_step * cfg.gaussians.bounding_size] * 3 + [tc.lm_step] * 3, dtype=torch.float64)
     variants = torch.cat([torch.zeros(1, 6, dtype=torch.float64), torch.diag(eps), -torch.diag(eps)])
-    delta, lam, unit = torch.zeros(6, dtype=torch.float64), tc.lm_damping, range_unit(state)
+    delta, lam, unit = (
+        torch.zeros(6, dtype=torch.float64),
+        tc.lm_damping,
+        range_unit(state, cfg.scale.range_weight),
+    )
     coarse_end = int(econ.coarse_fraction * spec.iterations) if econ.coarse_factor > 1 else 0
     t0, n_events, loss, stopped, it = time.perf_counter(), 0, float("nan"), False, -1
     for it in range(spec.iterations):
@@ -127,7 +131,13 @@ def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None =
                 q = res.ranges[:, used].double()
                 jq = (q[1:7] - q[7:13]) / (2 * eps[:, None])
                 # hess and grad are of P·cost (MSE) or 2P·cost (L1 by IRLS: |r| ≈ r²/2|r₀| + const).
-                wq = huber_weights(q[0]) * len(r0) * (2 if kind == "l1" else 1) * prior.weight / q.shape[1]
+                wq = (
+                    huber_weights(q[0])
+                    * len(r0)
+                    * (2 if kind == "l1" else 1)
+                    * cfg.scale.range_weight
+                    / q.shape[1]
+                )
                 hess, grad = hess + (jq * wq) @ jq.T, grad + (jq * wq) @ q[0]
                 cost0 += range_cost(state, res.ranges[0], used)
         step = -torch.linalg.solve(hess + lam * torch.diag(hess.diagonal()) + 1e-12 * torch.eye(6), grad)

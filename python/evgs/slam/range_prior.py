@@ -1,4 +1,4 @@
-"""A range meter inside the optimisation (``scale.range_weight`` > 0).
+"""A range meter inside the optimisation (``scale.range_weight``, ``init.search_range_weight`` > 0).
 
 The event loss cannot see scale, and sees motion along the optical axis only through the slow looming
 of the image: an approach at the wrong speed, or an orbit at the wrong rate with the relief scaled to
@@ -8,7 +8,8 @@ render on the principal ray. Its *ratios* between times are what the trajectory 
 approach they fix the speed, and as the ray sweeps the target they fix the relief the motion must
 agree with.
 
-So every stage adds ``range_weight · mean(h(q))``, ``q = D̄ · u / r − 1``, over the range samples in its
+So every stage adds ``scale.range_weight · mean(h(q))``, ``q = D̄ · u / r − 1``, and the motion search
+adds ``init.search_range_weight · mean(h(q))`` to each hypothesis' score, over the range samples in their
 chunks whose principal ray the map covers (alpha ≥ ``scale.min_alpha``), each rendered at the
 trajectory's pose at the sample's own time (no interpolation: the range jumps where the ray crosses an
 edge). ``h`` is ``q²`` up to ``HUBER`` and linear beyond, so a sample on an edge or on a part the map
@@ -86,24 +87,24 @@ def huber_weights(q: Tensor) -> Tensor:
 class RangePrior:
     t_us: np.ndarray  # (S,) sample times, increasing
     ranges: np.ndarray  # (S,) metres, finite and positive
-    weight: float
     min_alpha: float
     camera: Camera
     background: float
 
     @classmethod
     def for_run(cls, cfg: Config, data: EventData) -> RangePrior | None:
-        """The prior of a run on ``data`` (None when ``scale.range_weight`` is 0)."""
-        if cfg.scale.range_weight == 0:
+        """The prior of a run on ``data`` (None when neither ``scale.range_weight`` nor
+        ``init.search_range_weight`` is > 0)."""
+        if cfg.scale.range_weight == 0 and cfg.init.search_range_weight == 0:
             return None
         if data.ranges is None:
-            raise ValueError("scale.range_weight > 0 needs the sequence's range meter (range.csv)")
+            raise ValueError("a range weight > 0 needs the sequence's range meter (range.csv)")
         t, r = (np.asarray(a) for a in data.ranges)
         keep = np.isfinite(r) & (r > 0)
         order = np.argsort(t[keep], kind="stable")
         t, r = t[keep][order].astype(np.int64), r[keep][order].astype(np.float64)
         s = cfg.scale
-        return cls(t, r, s.range_weight, s.min_alpha, data.camera, cfg.gaussians.background)
+        return cls(t, r, s.min_alpha, data.camera, cfg.gaussians.background)
 
     def samples(self, t_lo: int, t_hi: int) -> tuple[np.ndarray, np.ndarray]:
         """``(t_us, metres)`` of the samples with ``t_lo <= t <= t_hi``."""
@@ -129,7 +130,7 @@ class RangePrior:
     def penalty(
         self, gaussians: Gaussians, traj: Trajectory, t_lo: int, t_hi: int, unit: float | None
     ) -> Tensor:
-        """``weight · mean(h(q))`` over the used samples between ``t_lo`` and ``t_hi`` µs (and inside the
+        """``mean(h(q))`` over the used samples between ``t_lo`` and ``t_hi`` µs (and inside the
         trajectory); 0 when there is none or no unit yet."""
         t, metres = self.samples(max(t_lo, int(traj.t_us[0])), min(t_hi, int(traj.t_us[-1])))
         if len(t) == 0 or unit is None:
@@ -138,4 +139,4 @@ class RangePrior:
         used = ~torch.isnan(q)
         if not bool(used.any()):
             return torch.zeros(())
-        return self.weight * huber(q[used]).mean()
+        return huber(q[used]).mean()
