@@ -66,10 +66,7 @@ def residuals(
         )  # fmt: skip
         ranges = None
         if state.range_prior is not None and unit is not None:
-            t_lo, t_hi = state.data.time_span(span)
-            t_r, metres = state.range_prior.samples(
-                max(t_lo, int(traj.t_us[0])), min(t_hi, int(traj.t_us[-1]))
-            )
+            t_r, metres = state.range_prior.samples(*state.data.time_span(span), traj)
             if len(t_r):
                 range_views = se3_inverse(torch.cat([traj.pose_at(t_r, trial) for trial in trials])).float()
                 q = state.range_prior.residuals(

@@ -106,8 +106,10 @@ class RangePrior:
         s = cfg.scale
         return cls(t, r, s.min_alpha, data.camera, cfg.gaussians.background)
 
-    def samples(self, t_lo: int, t_hi: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(t_us, metres)`` of the samples with ``t_lo <= t <= t_hi``."""
+    def samples(self, t_lo: int, t_hi: int, traj: Trajectory | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(t_us, metres)`` of the samples with ``t_lo <= t <= t_hi`` (and inside ``traj``'s knots)."""
+        if traj is not None:
+            t_lo, t_hi = max(t_lo, int(traj.t_us[0])), min(t_hi, int(traj.t_us[-1]))
         keep = (self.t_us >= t_lo) & (self.t_us <= t_hi)
         return self.t_us[keep], self.ranges[keep]
 
@@ -132,7 +134,7 @@ class RangePrior:
     ) -> Tensor:
         """``mean(h(q))`` over the used samples between ``t_lo`` and ``t_hi`` µs (and inside the
         trajectory); 0 when there is none or no unit yet."""
-        t, metres = self.samples(max(t_lo, int(traj.t_us[0])), min(t_hi, int(traj.t_us[-1])))
+        t, metres = self.samples(t_lo, t_hi, traj)
         if len(t) == 0 or unit is None:
             return torch.zeros(())
         q = self.residuals(gaussians, traj.viewmats_at(t), metres, unit)
