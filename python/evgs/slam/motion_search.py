@@ -21,6 +21,11 @@ motion (``init.search_half_rate``: each also at half that rate). The best (``ini
 are sized over × ``search_range``^(±½, ±1), then a compass search in the same basis plus roll adds
 what the family leaves out (roll, mixtures, an orbit centre off ``init_depth``). The joint
 initialization starts from the winner.
+
+Two measured options, off by default (docs/ablations.md §9): ``init.search_smooth`` refits on a fixed
+schedule without densification or pruning, so that the score changes smoothly with the motion (by
+default scores of motions 2 % apart differ by up to 10 %); ``init.search_range_weight`` adds the range
+meter's term (:mod:`evgs.slam.range_prior`) to the score.
 """
 
 from __future__ import annotations
