@@ -45,13 +45,11 @@ def principal_camera(camera: Camera) -> Camera:
 
 
 def principal_depth(
-    gaussians: Gaussians, viewmats: Tensor, camera: Camera, background: float, map_grad: bool = True
+    gaussians: Gaussians, viewmats: Tensor, camera: Camera, background: float
 ) -> tuple[Tensor, Tensor]:
     """``(alpha, mean depth D/alpha)`` (V,) on the principal ray of each view; differentiable in the
-    views, and in the Gaussians unless ``map_grad`` is false."""
-    inputs = gaussians.render_inputs()
-    if not map_grad:
-        inputs = {k: v.detach() for k, v in inputs.items()}
+    views only (the map is the events' to shape, see the module docstring)."""
+    inputs = {k: v.detach() for k, v in gaussians.render_inputs().items()}
     out = render(**inputs, viewmats=viewmats, camera=principal_camera(camera), background=background)
     alpha, depth = out.alpha.reshape(-1), out.depth.reshape(-1)
     return alpha, depth / alpha.clamp(min=1e-6)
@@ -125,7 +123,7 @@ class RangePrior:
         """(V,) ``D̄ · unit / r − 1`` of views with ranges ``metres`` (V,), differentiable in the views
         only; NaN where the map does not cover the view's principal ray."""
         r = torch.from_numpy(np.asarray(metres, dtype=np.float64)).float()
-        alpha, depth = principal_depth(gaussians, viewmats, self.camera, self.background, map_grad=False)
+        alpha, depth = principal_depth(gaussians, viewmats, self.camera, self.background)
         q = depth * unit / r - 1
         return torch.where(alpha >= self.min_alpha, q, torch.full_like(q, float("nan")))
 
