@@ -79,6 +79,33 @@ def test_search_finds_the_minimum_of_a_known_score(synth, monkeypatch):
     assert float((found.best.twist - truth).norm()) < 0.2 * float(truth.norm())
 
 
+def test_the_compass_starts_from_several_sized_directions(synth, monkeypatch):
+    """Two basins (the orbit preset): a shallow one at the basis orbit about -x, and the truth, an orbit
+    about -y with roll, whose basis orbit (no roll) scores worse than the -x one. From the best start
+    alone the compass stays in the shallow basin; with ``search_starts = 2`` it also climbs from -y."""
+    basis = {h.name: h.twist for h in directions(RATE, DEPTH)}
+    shallow = basis["orbit -x"]
+    truth = basis["orbit -y"] + torch.tensor([0, 0, 0, 0, 0, 0.5 * RATE], dtype=torch.float64)
+
+    def fake_score(state, hyp, reporter):
+        a = 0.5 + float(((hyp.twist - shallow) / RATE).square().sum())
+        return min(a, 4.0 * float(((hyp.twist - truth) / RATE).square().sum()))
+
+    monkeypatch.setattr(motion_search, "score", fake_score)
+    sets = [f"gaussians.init_depth={DEPTH}", f"init.search_rate={RATE}", "init.search_polls=32"]
+    basis_scores = {name: fake_score(None, Hypothesis(name, tw), None) for name, tw in basis.items()}
+    assert sorted(basis_scores, key=basis_scores.get)[:2] == ["orbit -x", "orbit -y"]
+    one = search_motion(synth_state(synth, *sets, "init.search_sized=2", "init.search_starts=1"))
+    assert one.best.name.startswith("orbit -x") and one.score >= 0.5
+    two = search_motion(synth_state(synth, *sets, "init.search_sized=2", "init.search_starts=2"))
+    assert two.best.name.startswith("orbit -y") and two.score < 0.05
+    assert float((two.best.twist - truth).norm()) < 0.1 * float(truth.norm())
+    # 11 basis scores, 2 × 4 sizes, then 32 new polls from each start.
+    assert len(two.tried) == 11 + 8 + 2 * 32
+    with pytest.raises(ValueError, match="search_starts"):
+        synth_state(synth, *sets, "init.search_sized=1", "init.search_starts=2")
+
+
 def test_a_slow_motion_is_sized_before_it_is_compared_with_no_motion(synth, monkeypatch):
     """With ``search_half_rate``, a slow approach (docking_good's is half the nominal rate): at 0.4× the
     nominal rate, every basis motion at the nominal rate scores worse than standing still; the half rate

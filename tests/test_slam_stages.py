@@ -149,6 +149,27 @@ def test_tracking_recovers_a_perturbed_pose(synth, solver_sets):
     assert torch.equal(state.traj.knots()[: k + 1], torch.as_tensor(scene.poses[: k + 1]))
 
 
+def test_lm_velocity_prior_pulls_towards_the_prediction(synth):
+    """``tracking.velocity_prior`` is a pull towards where the knot started (the constant-velocity
+    prediction): off, LM recovers the true pose; at weight 1 it stops part-way (the data's curvature and
+    the prior's are equal); overwhelming, the knot stays where it started."""
+    _, scene = synth
+    k = 4
+    T_gt = torch.as_tensor(scene.poses[k + 1])
+    start = T_gt @ se3_exp(torch.tensor([0.05, -0.04, 0.03, 0.02, -0.03, 0.02]).double())
+    errors = []
+    for weight in (0.0, 1.0, 1e6):
+        cfg = config("tracking.solver=lm", "tracking.num_opti_steps=8", "economy.coarse_factor=1",
+                     "tracking.mask_alpha=0.8", f"tracking.velocity_prior={weight}")  # fmt: skip
+        state = gt_state(synth, cfg, k + 1)
+        track(state, k, pose=start)
+        errors.append(pose_error(state.traj.knots()[k + 1], T_gt.numpy())[1])
+    at_start = pose_error(start, T_gt.numpy())[1]
+    assert errors[0] < 0.5 * at_start
+    assert errors[0] < errors[1] < 0.9 * at_start, (errors, at_start)
+    assert errors[2] == pytest.approx(at_start, rel=0.01)
+
+
 def test_mapping_keeps_parameters_aligned_through_densification(synth):
     _, scene = synth
     cfg = config(

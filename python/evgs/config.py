@@ -63,6 +63,7 @@ class InitConfig:
     search_holdout: int
     search_half_rate: bool
     search_sized: int
+    search_starts: int
     search_smooth: bool
     search_range_weight: float
 
@@ -76,6 +77,7 @@ class TrackingConfig:
     lm_step: float
     lm_damping: float
     lm_tolerance: float
+    velocity_prior: float
 
 
 @dataclass(frozen=True)
@@ -287,10 +289,11 @@ def _check_ranges(cfg: Config, source: str) -> None:
         or cfg.init.search_range <= 1
         or cfg.init.search_holdout < 0
         or cfg.init.search_sized < 1
+        or not 1 <= cfg.init.search_starts <= cfg.init.search_sized
     ):
         problems.append(
             "init.motion_search needs search_steps >= 1, search_rate > 0, search_range > 1, "
-            "search_holdout >= 0 and search_sized >= 1"
+            "search_holdout >= 0, search_sized >= 1 and 1 <= search_starts <= search_sized"
         )
     if not 0 <= cfg.loss.lambda_ssim <= 1:
         problems.append("loss.lambda_ssim must be in [0, 1]")

@@ -19,8 +19,10 @@ The hypotheses are the motions of proximity operations with the target ahead of 
 axes, approach / retreat along the optical axis, sideways translations, each in both directions, and no
 motion (``init.search_half_rate``: each also at half that rate). The best (``init.search_sized``)
 are sized over × ``search_range``^(±½, ±1), then a compass search in the same basis plus roll adds
-what the family leaves out (roll, mixtures, an orbit centre off ``init_depth``). The joint
-initialization starts from the winner.
+what the family leaves out (roll, mixtures, an orbit centre off ``init_depth``), from the best sized
+direction or, with ``init.search_starts``, from several (two basis orbits can tie while only one leads
+to the truth once roll is added; docs/ablations.md §10). The joint initialization starts from the
+winner.
 
 Two measured options, off by default (docs/ablations.md §9): ``init.search_smooth`` refits on a fixed
 schedule without densification or pruning, so that the score changes smoothly with the motion (by
@@ -215,15 +217,19 @@ def search_motion(state: SlamState, reporter: StageReporter | None = None) -> Se
     still, *moves = directions(cfg.search_rate, depth)
     trial(still)
     sized = [min((h, h.scaled(0.5)), key=trial) if cfg.search_half_rate else h for h in moves]
+    starts = []
     for h in sorted(sized, key=trial)[: cfg.search_sized]:
-        for e in (-1.0, -0.5, 0.5, 1.0):
-            trial(h.scaled(cfg.search_range**e))
-    best, best_score = trial.best()
-    if best.name != "still":
+        ladder = [h] + [h.scaled(cfg.search_range**e) for e in (-1.0, -0.5, 0.5, 1.0)]
+        starts.append(min(ladder, key=trial))
+    if trial.best()[0].name != "still":
         # Compass search in the basis of the hypotheses (orbit x/y, roll, translations), which the basis
         # motions alone miss: roll, mixtures and an orbit centre off init_depth, all of which the
         # magnitude would otherwise absorb. Sideways translations move the whole image: smaller steps.
-        rate = float(best.twist[3:].norm()) or float(best.twist[:3].norm()) / depth
-        best, best_score = compass(trial, best, 0.25 * rate, cfg.search_polls, poll_directions(depth))
+        # From several sized directions (``init.search_starts``): two basis orbits whose axes differ by
+        # 90° can tie while only one of them leads to the truth once roll is added (the orbit preset).
+        for start in sorted(starts, key=trial)[: cfg.search_starts]:
+            rate = float(start.twist[3:].norm()) or float(start.twist[:3].norm()) / depth
+            compass(trial, start, 0.25 * rate, cfg.search_polls, poll_directions(depth))
+    best, best_score = trial.best()
     tried = [(h.name, s) for h, s in trial.tried]
     return SearchResult(best, best_score, tried, cfg.search_steps * len(tried))

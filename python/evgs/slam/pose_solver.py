@@ -12,6 +12,12 @@ batched render, no backward pass), ``J``, the damped normal equations ``(JᵀWJ 
 (``W`` = IRLS weights for the L1 loss, 1 for MSE), and one more render of the trial increment on the same
 windows: accepted (λ shrinks) if the loss falls, rejected (λ grows) otherwise. Only the event term of
 eq. 8 is minimised: the SSIM term regularises the map's brightness, which tracking does not change.
+
+``tracking.velocity_prior`` = w adds ``w · δᵀ diag(H) δ`` for the increment ``δ`` from the
+constant-velocity prediction, ``H`` the event rows' own Gauss–Newton matrix: coordinates the events pin
+down move freely, those they barely see stay near constant velocity. Without it, tracking an orbit
+takes slightly too small a step each frame (the loss is shallow along the orbit) and the local BA bends
+the map to match, until the estimate turns at a third of the true rate (docs/ablations.md §10).
 """
 
 from __future__ import annotations
@@ -87,6 +93,11 @@ def range_cost(state: SlamState, q: Tensor | None, used: Tensor | None) -> float
     return state.cfg.scale.range_weight * float(huber(q[used].double()).mean())
 
 
+def velocity_cost(prior_h: Tensor, delta: Tensor, n_pixels: int, kind: str) -> float:
+    """The constant-velocity prior's term in the cost's units (see the range rows' weights)."""
+    return float(delta @ prior_h @ delta) / (n_pixels * (2 if kind == "l1" else 1))
+
+
 def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None = None) -> StageRecord:
     """Optimise the single trainable knot of ``spec`` by Levenberg–Marquardt; rebases at the end."""
     cfg, data, traj = state.cfg, state.data, state.traj
@@ -137,12 +148,18 @@ def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None =
                 )
                 hess, grad = hess + (jq * wq) @ jq.T, grad + (jq * wq) @ q[0]
                 cost0 += range_cost(state, res.ranges[0], used)
+        if tc.velocity_prior > 0:  # pull towards the constant-velocity prediction (delta = 0)
+            prior_h = tc.velocity_prior * torch.diag(hess.diagonal())
+            hess, grad = hess + prior_h, grad + prior_h @ delta
+            cost0 += velocity_cost(prior_h, delta, len(r0), kind)
         step = -torch.linalg.solve(hess + lam * torch.diag(hess.diagonal()) + 1e-12 * torch.eye(6), grad)
         cost1 = float("inf")  # a non-finite or implausibly long step (a near-singular system) is rejected
         if bool(torch.isfinite(step).all()) and float((step.abs() / eps).max()) <= MAX_STEP:
             trial = residuals(state, knot, (delta + step)[None], win, factor, spec.span, unit)
             cost1 = float(pointwise_error(trial.events[0][mask].double(), kind).mean())
             cost1 += range_cost(state, None if trial.ranges is None else trial.ranges[0], used)
+            if tc.velocity_prior > 0:
+                cost1 += velocity_cost(prior_h, delta + step, len(r0), kind)
         if cost1 < cost0:
             delta, lam, loss = delta + step, max(lam / 3, 1e-7), cost1
             converged = bool((step.abs() < tc.lm_tolerance * eps).all())
