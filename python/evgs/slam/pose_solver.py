@@ -17,7 +17,9 @@ eq. 8 is minimised: the SSIM term regularises the map's brightness, which tracki
 constant-velocity prediction, ``H`` the event rows' own Gauss–Newton matrix: coordinates the events pin
 down move freely, those they barely see stay near constant velocity. Without it, tracking an orbit
 takes slightly too small a step each frame (the loss is shallow along the orbit) and the local BA bends
-the map to match, until the estimate turns at a third of the true rate (docs/ablations.md §10).
+the map to match, until the estimate turns at a third of the true rate. The prior holds the
+initialization's errors just as firmly (a spurious rotation on an approach), so it is off by default
+(docs/ablations.md §10).
 """
 
 from __future__ import annotations
