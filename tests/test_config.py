@@ -177,6 +177,9 @@ def test_range_checks_name_the_keys():
         load_config(overrides=["gaussians.init_opacity=1.0", "strategy.refine_every=0"])
     assert "gaussians.init_opacity must be in (0, 1)" in str(e.value)
     assert "strategy.refine_every must be > 0" in str(e.value)
+    for sets in (["tracking.velocity_prior=-1"], ["tracking.solver=adam", "tracking.velocity_prior=1"]):
+        with pytest.raises(ConfigError, match="tracking.velocity_prior must be >= 0, and > 0 only with"):
+            load_config(overrides=sets)
 
 
 def test_command_line_arguments():

@@ -295,6 +295,8 @@ def _check_ranges(cfg: Config, source: str) -> None:
             "init.motion_search needs search_steps >= 1, search_rate > 0, search_range > 1, "
             "search_holdout >= 0, search_sized >= 1 and 1 <= search_starts <= search_sized"
         )
+    if cfg.tracking.velocity_prior < 0 or (cfg.tracking.velocity_prior > 0 and cfg.tracking.solver != "lm"):
+        problems.append("tracking.velocity_prior must be >= 0, and > 0 only with tracking.solver = 'lm'")
     if not 0 <= cfg.loss.lambda_ssim <= 1:
         problems.append("loss.lambda_ssim must be in [0, 1]")
     positive = {

@@ -14,7 +14,7 @@ windows: accepted (λ shrinks) if the loss falls, rejected (λ grows) otherwise.
 eq. 8 is minimised: the SSIM term regularises the map's brightness, which tracking does not change.
 
 ``tracking.velocity_prior`` = w adds ``w · δᵀ diag(H) δ`` for the increment ``δ`` from the
-constant-velocity prediction, ``H`` the event rows' own Gauss–Newton matrix: coordinates the events pin
+constant-velocity prediction, ``H`` the data rows' own Gauss–Newton matrix: coordinates the data pin
 down move freely, those they barely see stay near constant velocity. Without it, tracking an orbit
 takes slightly too small a step each frame (the loss is shallow along the orbit) and the local BA bends
 the map to match, until the estimate turns at a third of the true rate. The prior holds the
