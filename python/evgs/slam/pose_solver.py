@@ -95,11 +95,6 @@ def range_cost(state: SlamState, q: Tensor | None, used: Tensor | None) -> float
     return state.cfg.scale.range_weight * float(huber(q[used].double()).mean())
 
 
-def velocity_cost(prior_h: Tensor, delta: Tensor, n_pixels: int, kind: str) -> float:
-    """The constant-velocity prior's term in the cost's units (see the range rows' weights)."""
-    return float(delta @ prior_h @ delta) / (n_pixels * (2 if kind == "l1" else 1))
-
-
 def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None = None) -> StageRecord:
     """Optimise the single trainable knot of ``spec`` by Levenberg–Marquardt; rebases at the end."""
     cfg, data, traj = state.cfg, state.data, state.traj
@@ -134,34 +129,28 @@ def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None =
         hess = (jac * w) @ jac.T
         grad = (jac * w) @ r0
         cost0 = float(pointwise_error(r0, kind).mean())
+        # hess and grad are of rows·cost: P·cost (MSE) or 2P·cost (L1 by IRLS: |r| ≈ r²/2|r₀| + const).
+        rows = len(r0) * (2 if kind == "l1" else 1)
         used = None
         if prior is not None and res.ranges is not None:  # the range meter's rows: same views, increments
             used = ~torch.isnan(res.ranges).any(0)
             if bool(used.any()):
                 q = res.ranges[:, used].double()
                 jq = (q[1:7] - q[7:13]) / (2 * eps[:, None])
-                # hess and grad are of P·cost (MSE) or 2P·cost (L1 by IRLS: |r| ≈ r²/2|r₀| + const).
-                wq = (
-                    huber_weights(q[0])
-                    * len(r0)
-                    * (2 if kind == "l1" else 1)
-                    * cfg.scale.range_weight
-                    / q.shape[1]
-                )
+                wq = huber_weights(q[0]) * rows * cfg.scale.range_weight / q.shape[1]
                 hess, grad = hess + (jq * wq) @ jq.T, grad + (jq * wq) @ q[0]
                 cost0 += range_cost(state, res.ranges[0], used)
-        if tc.velocity_prior > 0:  # pull towards the constant-velocity prediction (delta = 0)
-            prior_h = tc.velocity_prior * torch.diag(hess.diagonal())
-            hess, grad = hess + prior_h, grad + prior_h @ delta
-            cost0 += velocity_cost(prior_h, delta, len(r0), kind)
+        # The pull towards the constant-velocity prediction (delta = 0); zero when the prior is off.
+        prior_h = tc.velocity_prior * torch.diag(hess.diagonal())
+        hess, grad = hess + prior_h, grad + prior_h @ delta
+        cost0 += float(delta @ prior_h @ delta) / rows
         step = -torch.linalg.solve(hess + lam * torch.diag(hess.diagonal()) + 1e-12 * torch.eye(6), grad)
         cost1 = float("inf")  # a non-finite or implausibly long step (a near-singular system) is rejected
         if bool(torch.isfinite(step).all()) and float((step.abs() / eps).max()) <= MAX_STEP:
             trial = residuals(state, knot, (delta + step)[None], win, factor, spec.span, unit)
             cost1 = float(pointwise_error(trial.events[0][mask].double(), kind).mean())
             cost1 += range_cost(state, None if trial.ranges is None else trial.ranges[0], used)
-            if tc.velocity_prior > 0:
-                cost1 += velocity_cost(prior_h, delta + step, len(r0), kind)
+            cost1 += float((delta + step) @ prior_h @ (delta + step)) / rows
         if cost1 < cost0:
             delta, lam, loss = delta + step, max(lam / 3, 1e-7), cost1
             converged = bool((step.abs() < tc.lm_tolerance * eps).all())
