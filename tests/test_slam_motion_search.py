@@ -29,8 +29,15 @@ def synth(tmp_path_factory):
 
 def synth_state(synth, *sets: str):
     seq, _ = synth
-    base = ["data.event_contrast=0.2", "gaussians.bounding_size=1.0", "gaussians.init_depth=2.2",
-            "gaussians.init_depth_spread=0.5", "scale.source=none", "init.num_frames=4"]  # fmt: skip
+    base = [
+        "data.event_contrast=0.2",
+        "gaussians.bounding_size=1.0",
+        "gaussians.init_depth=2.2",
+        "gaussians.init_depth_spread=0.5",
+        "scale.source=none",
+        "init.num_frames=4",
+        "init.search_tilt=0",
+    ]  # fmt: skip  (the plain basis; the tilted one has its own test)
     cfg = load_config("synthetic/tiny", [*base, *sets])
     cfg = dataclasses.replace(cfg, seq=str(seq.root))
     return new_state(cfg, EventData.from_sequence(seq, cfg.data))
@@ -53,6 +60,48 @@ def test_hypotheses_are_rigid_orbits_about_the_centre_or_translations():
             assert torch.allclose(t.norm(dim=1), torch.arange(4, dtype=torch.float64) * RATE * DEPTH)
     # An orbit about +y moves the camera towards -x (the centre stays ahead): t_x ≈ -rate·depth.
     assert float(hyps["orbit +y"].knots(2)[1, 0, 3]) == pytest.approx(-RATE * DEPTH, rel=1e-3)
+
+
+def test_tilted_orbits_keep_the_centre_and_roll_by_the_tilt():
+    """``init.search_tilt``: every orbit also about its axis tilted ± the angle towards the optical axis
+    (an orbit seen at an elevation), still about the centre and at the same rate."""
+    plain = {h.name for h in directions(RATE, DEPTH)}
+    hyps = {h.name: h for h in directions(RATE, DEPTH, 20.0)}
+    assert len(hyps) == 19 and plain <= set(hyps)
+    centre = torch.tensor([0.0, 0.0, DEPTH], dtype=torch.float64)
+    for sign in "+-":
+        for axis in "xy":
+            for tilt in (20.0, -20.0):
+                h = hyps[f"orbit {sign}{axis} tilt {tilt:+g}°"]
+                K = h.knots(3)
+                assert torch.allclose(K[:, :3, :3] @ centre + K[:, :3, 3], centre.expand(3, 3), atol=1e-12)
+                w = h.twist[3:]
+                assert float(w.norm()) == pytest.approx(RATE)
+                assert np.degrees(np.arcsin(float(w[2]) / RATE)) == pytest.approx(tilt)
+                assert float(w["xy".index(axis)]) * (1 if sign == "+" else -1) > 0
+
+
+def test_without_polls_the_search_picks_the_best_sized_basis_motion_tilted_or_not(synth, monkeypatch):
+    """The defaults (no compass, tilted orbits): a quadratic score around an orbit seen from an
+    elevation of 18° (about -y tilted towards the optical axis, at 1.1× the nominal rate) is won by the
+    tilted basis orbit; without the tilt only the plain one is there to win, at a worse score."""
+    tilted = {h.name: h.twist for h in directions(RATE, DEPTH, 20.0)}["orbit -y tilt -20°"]
+    w = RATE * torch.tensor([0.0, -np.cos(np.radians(18)), -np.sin(np.radians(18))], dtype=torch.float64)
+    truth = 1.1 * torch.cat([-torch.linalg.cross(w, torch.tensor([0.0, 0.0, DEPTH], dtype=torch.float64)), w])
+    assert float((tilted - truth).norm()) < 0.2 * float(truth.norm())
+
+    unit = RATE * torch.tensor([DEPTH] * 3 + [1.0] * 3, dtype=torch.float64)  # equal image motion
+
+    def fake_score(state, hyp, reporter):
+        return float(((hyp.twist - truth) / unit).square().sum())
+
+    monkeypatch.setattr(motion_search, "score", fake_score)
+    sets = [f"gaussians.init_depth={DEPTH}", f"init.search_rate={RATE}", "init.search_polls=0"]
+    found = search_motion(synth_state(synth, *sets, "init.search_tilt=20"))
+    assert found.best.name == "orbit -y tilt -20°"
+    assert len(found.tried) == 19 + 4  # no motion, 18 directions, 4 more sizes of the best; no polls
+    plain = search_motion(synth_state(synth, *sets))
+    assert plain.best.name == "orbit -y" and plain.score > 2 * found.score
 
 
 def test_search_finds_the_minimum_of_a_known_score(synth, monkeypatch):
@@ -104,6 +153,8 @@ def test_the_compass_starts_from_several_sized_directions(synth, monkeypatch):
     assert len(two.tried) == 11 + 8 + 2 * 32
     with pytest.raises(ValueError, match="search_starts"):
         synth_state(synth, *sets, "init.search_sized=1", "init.search_starts=2")
+    with pytest.raises(ValueError, match="search_tilt < 90"):
+        synth_state(synth, *sets, "init.search_tilt=90")
 
 
 def test_a_slow_motion_is_sized_before_it_is_compared_with_no_motion(synth, monkeypatch):

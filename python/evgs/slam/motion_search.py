@@ -16,13 +16,17 @@ an option, off by default.
 
 The hypotheses are the motions of proximity operations with the target ahead of the camera, at
 ``init.search_rate`` per frame: orbits of the point ``(0, 0, init_depth)`` about the camera's x and y
-axes, approach / retreat along the optical axis, sideways translations, each in both directions, and no
-motion (``init.search_half_rate``: each also at half that rate). The best (``init.search_sized``)
-are sized over × ``search_range``^(±½, ±1), then a compass search in the same basis plus roll adds
-what the family leaves out (roll, mixtures, an orbit centre off ``init_depth``), from the best sized
-direction or, with ``init.search_starts``, from several (two basis orbits can tie while only one leads
-to the truth once roll is added; docs/ablations.md §10). The joint initialization starts from the
-winner.
+axes (``init.search_tilt``: also about those axes tilted towards the optical axis, as an orbit seen from
+an elevation is), approach / retreat along the optical axis, sideways translations, each in both
+directions, and no motion (``init.search_half_rate``: each also at half that rate). The best
+(``init.search_sized``) are sized over × ``search_range``^(±½, ±1). The joint initialization starts
+from the winner.
+
+With ``init.search_polls`` > 0 a compass search in the same basis plus roll then adds what the family
+leaves out (roll, mixtures, an orbit centre off ``init_depth``), from the best sized direction or, with
+``init.search_starts``, from several (two basis orbits can tie while only one leads to the truth once
+roll is added; docs/ablations.md §10). It is off by default: its steps are as small as the score's
+noise, so on an approach it adds a spurious rotation that tracking carries on (docs/ablations.md §11).
 
 Two measured options, off by default (docs/ablations.md §9): ``init.search_smooth`` refits on a fixed
 schedule without densification or pruning, so that the score changes smoothly with the motion (by
@@ -62,17 +66,23 @@ class Hypothesis:
         return Hypothesis(f"{self.name} ×{factor:.3g}", self.twist * factor)
 
 
-def directions(rate: float, depth: float) -> Iterator[Hypothesis]:
+def directions(rate: float, depth: float, tilt_deg: float = 0.0) -> Iterator[Hypothesis]:
     """Unit-rate hypotheses: ``rate`` rad per frame for orbits, ``rate × depth`` per frame for translations
-    (the same image motion at the centre's depth)."""
+    (the same image motion at the centre's depth). With ``tilt_deg`` each orbit also with its axis tilted
+    by ± that towards the optical axis: an orbit about an axis seen at an elevation (the orbit preset's
+    20°) turns the camera about its x or y axis and rolls it at once."""
     centre = torch.tensor([0.0, 0.0, depth], dtype=torch.float64)
     yield Hypothesis("still", torch.zeros(6, dtype=torch.float64))
+    tilts = [0.0] + ([tilt_deg, -tilt_deg] if tilt_deg else [])
     for axis, name in ((0, "x"), (1, "y")):
         for sign, s in ((1.0, "+"), (-1.0, "-")):
-            w = torch.zeros(3, dtype=torch.float64)
-            w[axis] = sign * rate
-            # A rotation about the point `centre`: v = -ω × c (zero pitch screw through c).
-            yield Hypothesis(f"orbit {s}{name}", torch.cat([-torch.linalg.cross(w, centre), w]))
+            for tilt in tilts:
+                w = torch.zeros(3, dtype=torch.float64)
+                w[axis] = sign * rate * np.cos(np.radians(tilt))
+                w[2] = rate * np.sin(np.radians(tilt))
+                # A rotation about the point `centre`: v = -ω × c (zero pitch screw through c).
+                label = f"orbit {s}{name}" + (f" tilt {tilt:+g}°" if tilt else "")
+                yield Hypothesis(label, torch.cat([-torch.linalg.cross(w, centre), w]))
     for axis, name in ((2, "z"), (0, "x"), (1, "y")):
         for sign, s in ((1.0, "+"), (-1.0, "-")):
             v = torch.zeros(6, dtype=torch.float64)
@@ -214,14 +224,14 @@ def search_motion(state: SlamState, reporter: StageReporter | None = None) -> Se
     # Each direction at the nominal rate (and at half of it), and the best directions then sized over the
     # ladder, before they are compared with each other and with no motion: at twice its true rate the
     # true direction can lose to wrong ones (docking_good's approach to every orbit).
-    still, *moves = directions(cfg.search_rate, depth)
+    still, *moves = directions(cfg.search_rate, depth, cfg.search_tilt)
     trial(still)
     sized = [min((h, h.scaled(0.5)), key=trial) if cfg.search_half_rate else h for h in moves]
     starts = []
     for h in sorted(sized, key=trial)[: cfg.search_sized]:
         ladder = [h] + [h.scaled(cfg.search_range**e) for e in (-1.0, -0.5, 0.5, 1.0)]
         starts.append(min(ladder, key=trial))
-    if trial.best()[0].name != "still":
+    if cfg.search_polls > 0 and trial.best()[0].name != "still":
         # Compass search in the basis of the hypotheses (orbit x/y, roll, translations), which the basis
         # motions alone miss: roll, mixtures and an orbit centre off init_depth, all of which the
         # magnitude would otherwise absorb. Sideways translations move the whole image: smaller steps.
