@@ -36,8 +36,8 @@ def synth_state(synth, *sets: str):
         "gaussians.init_depth_spread=0.5",
         "scale.source=none",
         "init.num_frames=4",
-        "init.search_tilt=0",
-    ]  # fmt: skip  (the plain basis; the tilted one has its own test)
+        "init.search_tilt=0",  # the plain basis: the tilted one has its own test
+    ]
     cfg = load_config("synthetic/tiny", [*base, *sets])
     cfg = dataclasses.replace(cfg, seq=str(seq.root))
     return new_state(cfg, EventData.from_sequence(seq, cfg.data))
