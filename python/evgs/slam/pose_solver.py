@@ -18,8 +18,9 @@ constant-velocity prediction, ``H`` the data rows' own Gauss–Newton matrix: co
 down move freely, those they barely see stay near constant velocity. Without it, tracking an orbit
 takes slightly too small a step each frame (the loss is shallow along the orbit) and the local BA bends
 the map to match, until the estimate turns at a third of the true rate. The prior holds the
-initialization's errors just as firmly (a spurious rotation on an approach), so it is off by default
-(docs/ablations.md §10).
+initialization's errors and a true change of rate just as firmly (the swirl's turn slowing down and
+reversing), so it is off by default and on in the orbit configs, whose rate is steady
+(docs/ablations.md §10–11).
 """
 
 from __future__ import annotations
