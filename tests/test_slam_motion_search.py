@@ -99,9 +99,31 @@ def test_without_polls_the_search_picks_the_best_sized_basis_motion_tilted_or_no
     sets = [f"gaussians.init_depth={DEPTH}", f"init.search_rate={RATE}", "init.search_polls=0"]
     found = search_motion(synth_state(synth, *sets, "init.search_tilt=20"))
     assert found.best.name == "orbit -y tilt -20°"
-    assert len(found.tried) == 19 + 4  # no motion, 18 directions, 4 more sizes of the best; no polls
+    assert len(found.tried) == 19 + 8  # no motion, 18 directions, 4 more sizes of the best of each family
     plain = search_motion(synth_state(synth, *sets))
     assert plain.best.name == "orbit -y" and plain.score > 2 * found.score
+
+
+def test_the_best_translation_is_sized_even_when_an_orbit_beats_it_at_the_nominal_rate(synth, monkeypatch):
+    """docking_good: its approach, at half the nominal rate, scores worse at the nominal rate than an
+    orbit does; sized only by rank, the orbit alone would be sized and win. Each family's best is sized,
+    so the approach at its own rate is found."""
+    basis = {h.name: h.twist for h in directions(RATE, DEPTH)}
+    truth = 0.5 * basis["translate +z"]
+    unit = RATE * torch.tensor([DEPTH] * 3 + [1.0] * 3, dtype=torch.float64)  # equal image motion
+
+    def fake_score(state, hyp, reporter):
+        to_truth = float(((hyp.twist - truth) / unit).square().sum())
+        to_orbit = float(((hyp.twist - basis["orbit -y"]) / unit).square().sum())
+        return min(4.0 * to_truth, 0.5 + to_orbit)
+
+    monkeypatch.setattr(motion_search, "score", fake_score)
+    nominal = {name: fake_score(None, Hypothesis(name, tw), None) for name, tw in basis.items()}
+    assert min(nominal, key=nominal.get) == "orbit -y" and nominal["translate +z"] > nominal["orbit -y"]
+    sets = [f"gaussians.init_depth={DEPTH}", f"init.search_rate={RATE}", "init.search_polls=0"]
+    found = search_motion(synth_state(synth, *sets))
+    assert found.best.name == "translate +z ×0.5" and found.score == 0.0
+    assert len(found.tried) == 11 + 8
 
 
 def test_search_finds_the_minimum_of_a_known_score(synth, monkeypatch):
@@ -118,8 +140,8 @@ def test_search_finds_the_minimum_of_a_known_score(synth, monkeypatch):
 
     monkeypatch.setattr(motion_search, "score", fake_score)
     found = search_motion(state)
-    # No motion, 10 directions, 4 sizes of the best one, the compass polls.
-    assert found.tried[0][0] == "still" and len(found.tried) == 11 + 4 + 48
+    # No motion, 10 directions, 4 sizes of the best orbit and of the best translation, the compass polls.
+    assert found.tried[0][0] == "still" and len(found.tried) == 11 + 8 + 48
     assert found.steps == state.cfg.init.search_steps * len(found.tried)
     assert found.best.name.startswith("orbit -y")
     assert found.score == fake_score(None, found.best, None) == min(s for _, s in found.tried)
@@ -149,10 +171,11 @@ def test_the_compass_starts_from_several_sized_directions(synth, monkeypatch):
     two = search_motion(synth_state(synth, *sets, "init.search_sized=2", "init.search_starts=2"))
     assert two.best.name.startswith("orbit -y") and two.score < 0.05
     assert float((two.best.twist - truth).norm()) < 0.1 * float(truth.norm())
-    # 11 basis scores, 2 × 4 sizes, then 32 new polls from each start.
-    assert len(two.tried) == 11 + 8 + 2 * 32
+    # 11 basis scores, 4 sizes of the 2 best orbits and of the 2 best translations, then 32 new polls
+    # from each start.
+    assert len(two.tried) == 11 + 16 + 2 * 32
     with pytest.raises(ValueError, match="search_starts"):
-        synth_state(synth, *sets, "init.search_sized=1", "init.search_starts=2")
+        synth_state(synth, *sets, "init.search_sized=1", "init.search_starts=3")
     with pytest.raises(ValueError, match="search_tilt < 90"):
         synth_state(synth, *sets, "init.search_tilt=90")
 
@@ -170,8 +193,9 @@ def test_a_slow_motion_is_sized_before_it_is_compared_with_no_motion(synth, monk
     found = search_motion(state)
     nominal = {name: s for name, s in found.tried[:21] if "×" not in name}
     assert len(nominal) == 11 and min(nominal, key=nominal.get) == "still"
-    # No motion, 10 directions at two rates, 2 × 4 sizes (some already scored), the compass polls.
-    assert 1 + 20 + 24 < len(found.tried) <= 1 + 20 + 2 * 4 + 24
+    # No motion, 10 directions at two rates, 4 sizes of the 2 best of each family (some already scored),
+    # the compass polls.
+    assert 1 + 20 + 24 < len(found.tried) <= 1 + 20 + 4 * 4 + 24
     assert found.best.name.startswith("translate +z ×0.5")
     assert float((found.best.twist - truth).norm()) < 0.2 * float(truth.norm())
 

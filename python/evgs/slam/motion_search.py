@@ -18,9 +18,10 @@ The hypotheses are the motions of proximity operations with the target ahead of 
 ``init.search_rate`` per frame: orbits of the point ``(0, 0, init_depth)`` about the camera's x and y
 axes (``init.search_tilt``: also about those axes tilted towards the optical axis, as an orbit seen from
 an elevation is), approach / retreat along the optical axis, sideways translations, each in both
-directions, and no motion (``init.search_half_rate``: each also at half that rate). The best
-(``init.search_sized``) are sized over × ``search_range``^(±½, ±1). The joint initialization starts
-from the winner.
+directions, and no motion (``init.search_half_rate``: each also at half that rate). The best orbits
+and the best translations (``init.search_sized`` of each) are sized over × ``search_range``^(±½, ±1):
+each family's best at its own size, so that an approach too fast at the nominal rate is not left
+behind orbits (docking_good). The joint initialization starts from the winner.
 
 With ``init.search_polls`` > 0 a compass search in the same basis plus roll then adds what the family
 leaves out (roll, mixtures, an orbit centre off ``init_depth``), from the best sized direction or, with
@@ -56,6 +57,7 @@ EVAL_WINDOWS = 8  # fixed windows every hypothesis is scored on, in the fitted c
 class Hypothesis:
     name: str
     twist: Tensor  # per-frame se(3) twist (v, ω) in the first camera's frame
+    family: str = ""  # the basis motion's kind: "still", "orbit" or "translate" ("" off the basis)
 
     def knots(self, n: int) -> Tensor:
         """Camera-to-world knots 0..n-1 under this constant velocity (knot 0 = identity)."""
@@ -63,7 +65,7 @@ class Hypothesis:
         return se3_exp(k * self.twist[None])
 
     def scaled(self, factor: float) -> Hypothesis:
-        return Hypothesis(f"{self.name} ×{factor:.3g}", self.twist * factor)
+        return Hypothesis(f"{self.name} ×{factor:.3g}", self.twist * factor, self.family)
 
 
 def directions(rate: float, depth: float, tilt_deg: float = 0.0) -> Iterator[Hypothesis]:
@@ -72,7 +74,7 @@ def directions(rate: float, depth: float, tilt_deg: float = 0.0) -> Iterator[Hyp
     by ± that towards the optical axis: an orbit about an axis seen at an elevation (the orbit preset's
     20°) turns the camera about its x or y axis and rolls it at once."""
     centre = torch.tensor([0.0, 0.0, depth], dtype=torch.float64)
-    yield Hypothesis("still", torch.zeros(6, dtype=torch.float64))
+    yield Hypothesis("still", torch.zeros(6, dtype=torch.float64), "still")
     tilts = [0.0] + ([tilt_deg, -tilt_deg] if tilt_deg else [])
     for axis, name in ((0, "x"), (1, "y")):
         for sign, s in ((1.0, "+"), (-1.0, "-")):
@@ -82,12 +84,12 @@ def directions(rate: float, depth: float, tilt_deg: float = 0.0) -> Iterator[Hyp
                 w[2] = rate * np.sin(np.radians(tilt))
                 # A rotation about the point `centre`: v = -ω × c (zero pitch screw through c).
                 label = f"orbit {s}{name}" + (f" tilt {tilt:+g}°" if tilt else "")
-                yield Hypothesis(label, torch.cat([-torch.linalg.cross(w, centre), w]))
+                yield Hypothesis(label, torch.cat([-torch.linalg.cross(w, centre), w]), "orbit")
     for axis, name in ((2, "z"), (0, "x"), (1, "y")):
         for sign, s in ((1.0, "+"), (-1.0, "-")):
             v = torch.zeros(6, dtype=torch.float64)
             v[axis] = sign * rate * depth
-            yield Hypothesis(f"translate {s}{name}", v)
+            yield Hypothesis(f"translate {s}{name}", v, "translate")
 
 
 def search_chunks(state: SlamState) -> tuple[int, int]:
@@ -221,16 +223,18 @@ def search_motion(state: SlamState, reporter: StageReporter | None = None) -> Se
     cfg = state.cfg.init
     depth = state.cfg.gaussians.init_depth
     trial = Scorer(state, reporter)
-    # Each direction at the nominal rate (and at half of it), and the best directions then sized over the
-    # ladder, before they are compared with each other and with no motion: at twice its true rate the
-    # true direction can lose to wrong ones (docking_good's approach to every orbit).
+    # Each direction at the nominal rate (and at half of it), and the best directions of each family then
+    # sized over the ladder, before they are compared with each other and with no motion: at twice its
+    # true rate the true direction can lose to wrong ones (docking_good's approach to every orbit, while
+    # at its own rate it beats them all).
     still, *moves = directions(cfg.search_rate, depth, cfg.search_tilt)
     trial(still)
     sized = [min((h, h.scaled(0.5)), key=trial) if cfg.search_half_rate else h for h in moves]
     starts = []
-    for h in sorted(sized, key=trial)[: cfg.search_sized]:
-        ladder = [h] + [h.scaled(cfg.search_range**e) for e in (-1.0, -0.5, 0.5, 1.0)]
-        starts.append(min(ladder, key=trial))
+    for family in ("orbit", "translate"):
+        for h in sorted((h for h in sized if h.family == family), key=trial)[: cfg.search_sized]:
+            ladder = [h] + [h.scaled(cfg.search_range**e) for e in (-1.0, -0.5, 0.5, 1.0)]
+            starts.append(min(ladder, key=trial))
     if cfg.search_polls > 0 and trial.best()[0].name != "still":
         # Compass search in the basis of the hypotheses (orbit x/y, roll, translations), which the basis
         # motions alone miss: roll, mixtures and an orbit centre off init_depth, all of which the
