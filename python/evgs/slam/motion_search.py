@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Iterator
+from typing import Literal
 
 import numpy as np
 import torch
@@ -51,13 +52,14 @@ from evgs.slam.state import SlamState, stage_seed
 from evgs.slam.trajectory import Trajectory
 
 EVAL_WINDOWS = 8  # fixed windows every hypothesis is scored on, in the fitted chunks and in those ahead
+Family = Literal["still", "orbit", "translate", ""]  # a basis motion's kind ("" off the basis: compass steps)
 
 
 @dataclasses.dataclass(frozen=True)
 class Hypothesis:
     name: str
     twist: Tensor  # per-frame se(3) twist (v, ω) in the first camera's frame
-    family: str = ""  # the basis motion's kind: "still", "orbit" or "translate" ("" off the basis)
+    family: Family = ""
 
     def knots(self, n: int) -> Tensor:
         """Camera-to-world knots 0..n-1 under this constant velocity (knot 0 = identity)."""
