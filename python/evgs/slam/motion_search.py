@@ -20,7 +20,7 @@ axes (``init.search_tilt``: also about those axes tilted towards the optical axi
 an elevation is), approach / retreat along the optical axis, sideways translations, each in both
 directions, and no motion (``init.search_half_rate``: each also at half that rate). The best orbits
 and the best translations (``init.search_sized`` of each) are sized over × ``search_range``^(±½, ±1):
-each family's best at its own size, so that an approach too fast at the nominal rate is not left
+each family's best at its own size, so that an approach slower than the nominal rate is not left
 behind orbits (docking_good). The joint initialization starts from the winner.
 
 With ``init.search_polls`` > 0 a compass search in the same basis plus roll then adds what the family
