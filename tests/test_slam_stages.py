@@ -15,7 +15,7 @@ from evgs.slam.gaussians import PARAM_NAMES, Gaussians  # noqa: E402
 from evgs.slam.guards import BrightnessAnchor  # noqa: E402
 from evgs.slam.lie import se3_exp, se3_inverse, se3_log  # noqa: E402
 from evgs.slam.optimize import Convergence, StageSpec, lr_boost, set_lr_boost  # noqa: E402
-from evgs.slam.pipeline import initial_gaussians  # noqa: E402
+from evgs.slam.pipeline import initial_gaussians, seeding_weights  # noqa: E402
 from evgs.slam.stages import map_window, track  # noqa: E402
 from evgs.slam.state import SlamState  # noqa: E402
 from evgs.slam.trajectory import Trajectory  # noqa: E402
@@ -110,6 +110,25 @@ def test_event_seeding_needs_the_depth_range_ahead_of_the_camera(synth):
     u = (means[:, 0] / z * cam.fx + cam.cx).floor().long()
     v = (means[:, 1] / z * cam.fy + cam.cy).floor().long()
     assert bool(active[v, u].all())
+
+
+def test_the_silhouettes_inside_is_seeded_when_its_outline_is_closed_within_the_fill_gap():
+    # A square's outline (3 events per pixel) with a 4-pixel break in its top edge, and a lone noise pixel.
+    counts = torch.zeros(40, 40)
+    counts[10, 10:31] = counts[30, 10:31] = counts[10:31, 10] = counts[10:31, 30] = 3.0
+    counts[10, 18:22] = 0.0
+    counts[2, 2] = 1.0
+    inside = torch.zeros(40, 40, dtype=torch.bool)
+    inside[11:30, 11:30] = inside[10, 18:22] = True  # the break closes too
+
+    plain = seeding_weights(counts, 2, 0)
+    assert torch.equal(plain, torch.where(counts >= 2, counts, 0.0))  # below min_events: not seeded
+    assert torch.equal(seeding_weights(counts, 2, 2), plain)  # the break is wider than the gap
+    filled = seeding_weights(counts, 2, 4)
+    assert bool((filled[inside] == 2.0).all())  # the inside, at the weight of min_events
+    assert torch.equal(filled[~inside], plain[~inside])  # the outline and the outside unchanged
+    with pytest.raises(Exception, match="init_fill_gap"):
+        config("gaussians.init_fill_gap=-1")
 
 
 def reprojection_px(T: torch.Tensor, T_gt: torch.Tensor, points: torch.Tensor, fx: float) -> float:

@@ -107,6 +107,7 @@ class GaussiansConfig:
     init_seeding: Literal["box", "events"]
     init_depth_spread: float
     init_min_events: int
+    init_fill_gap: int
     init_opacity: float
     init_color: float
     background: float
@@ -300,6 +301,8 @@ def _check_ranges(cfg: Config, source: str) -> None:
         )
     if cfg.tracking.velocity_prior < 0 or (cfg.tracking.velocity_prior > 0 and cfg.tracking.solver != "lm"):
         problems.append("tracking.velocity_prior must be >= 0, and > 0 only with tracking.solver = 'lm'")
+    if g.init_fill_gap < 0:
+        problems.append("gaussians.init_fill_gap must be >= 0 (0 = off)")
     if not 0 <= cfg.loss.lambda_ssim <= 1:
         problems.append("loss.lambda_ssim must be in [0, 1]")
     positive = {

@@ -11,7 +11,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import numpy as np
 import torch
+from scipy import ndimage
+from torch import Tensor
 
 from evgs.config import Config, GaussiansConfig
 from evgs.slam import checkpoint
@@ -42,8 +45,7 @@ def initial_gaussians(g: GaussiansConfig, data: EventData, m: int, generator: to
     """The map before initialization, seeded as ``gaussians.init_seeding`` says; the first camera is near
     the identity, so its optical axis is +z."""
     if g.init_seeding == "events":
-        counts = data.activity(data.span(0, m))
-        weights = torch.where(counts >= g.init_min_events, counts, 0.0)
+        weights = seeding_weights(data.activity(data.span(0, m)), g.init_min_events, g.init_fill_gap)
         spread = g.init_depth_spread or g.bounding_size
         depths = (g.init_depth - spread, g.init_depth + spread)
         if depths[0] <= 0:
@@ -58,6 +60,22 @@ def initial_gaussians(g: GaussiansConfig, data: EventData, m: int, generator: to
     with torch.no_grad():
         gaussians["means"][:, 2] += g.init_depth
     return gaussians
+
+
+def seeding_weights(counts: Tensor, min_events: int, fill_gap: int) -> Tensor:
+    """Per-pixel seeding weights from the init chunks' event counts: pixels with at least ``min_events``
+    events weigh their count; with ``fill_gap`` > 0 the pixels they enclose once gaps of up to that many
+    pixels are closed weigh ``min_events`` (a uniform face's events are only at its edges, so the face
+    would stay empty; it is smooth, so few and larger Gaussians cover it)."""
+    active = counts >= min_events
+    weights = torch.where(active, counts, 0.0)
+    if fill_gap > 0:
+        mask = active.numpy()
+        radius = (fill_gap + 1) // 2
+        closed = ndimage.binary_closing(mask, np.ones((3, 3), bool), iterations=radius, border_value=0)
+        inside = ndimage.binary_fill_holes(closed) & ~mask
+        weights[torch.from_numpy(inside)] = float(min_events)
+    return weights
 
 
 def describe(record: StageRecord) -> str:
