@@ -13,7 +13,14 @@ pytest.importorskip("evgs.render")
 from evgs.config import load_config  # noqa: E402
 from evgs.slam import motion_search  # noqa: E402
 from evgs.slam.lie import se3_inverse, se3_log  # noqa: E402
-from evgs.slam.motion_search import Hypothesis, directions, score, search_chunks, search_motion  # noqa: E402
+from evgs.slam.motion_search import (  # noqa: E402
+    Hypothesis,
+    directions,
+    score,
+    search_chunks,
+    search_motion,
+    veered,
+)
 from evgs.slam.pipeline import new_state  # noqa: E402
 from evgs.slam.stages import start_from_best_motion  # noqa: E402
 from evgs.slam.windows import EventData  # noqa: E402
@@ -124,6 +131,46 @@ def test_the_best_translation_is_sized_even_when_an_orbit_beats_it_at_the_nomina
     found = search_motion(synth_state(synth, *sets))
     assert found.best.name == "translate +z ×0.5" and found.score == 0.0
     assert len(found.tried) == 11 + 8
+
+
+def test_veered_translations_keep_speed_and_rotation_and_turn_by_the_angle():
+    """Four moves: ± the angle towards each of two axes across the translation, which with the
+    translation itself are orthogonal."""
+    h = Hypothesis("t", torch.tensor([0.01, -0.02, 0.05, 0.0, 0.001, 0.0], dtype=torch.float64), "translate")
+    out = veered(h, 20.0)
+    assert len(out) == 4 and all(o.family == "translate" for o in out)
+    v = h.twist[:3]
+    across = []
+    for o in out:
+        v2 = o.twist[:3]
+        assert torch.equal(o.twist[3:], h.twist[3:])
+        assert float(v2.norm()) == pytest.approx(float(v.norm()))
+        assert np.degrees(np.arccos(float(v2 @ v / v.norm() ** 2))) == pytest.approx(20.0)
+        across.append(v2 - v2 @ v / v.norm() ** 2 * v)
+    assert torch.allclose(across[0], -across[1]) and torch.allclose(across[2], -across[3])
+    assert abs(float(across[0] @ across[2])) < 1e-12
+
+
+def test_a_winning_translation_is_veered_towards_a_sideways_part(synth, monkeypatch):
+    """``init.search_veer``: a descent's motion, forward and 12° sideways along -y, is won by the basis
+    approach; veered by 20° and then by 10° back, it comes to within 2° of the true direction. Off,
+    the approach stays as it is."""
+    ang = np.radians(12.0)
+    truth = RATE * DEPTH * torch.tensor([0.0, -np.sin(ang), np.cos(ang), 0, 0, 0], dtype=torch.float64)
+
+    def fake_score(state, hyp, reporter):
+        return float(((hyp.twist - truth) / (RATE * DEPTH)).square().sum())
+
+    monkeypatch.setattr(motion_search, "score", fake_score)
+    sets = [f"gaussians.init_depth={DEPTH}", f"init.search_rate={RATE}", "init.search_polls=0"]
+    plain = search_motion(synth_state(synth, *sets))
+    assert plain.best.name == "translate +z" and len(plain.tried) == 11 + 8
+    found = search_motion(synth_state(synth, *sets, "init.search_veer=20"))
+    assert len(found.tried) == 11 + 8 + 12 and found.score < 0.2 * plain.score
+    v, t = found.best.twist[:3], truth[:3]
+    assert np.degrees(np.arccos(float(v @ t / (v.norm() * t.norm())))) < 2.5
+    with pytest.raises(ValueError, match="search_veer < 90"):
+        synth_state(synth, *sets, "init.search_veer=90")
 
 
 def test_search_finds_the_minimum_of_a_known_score(synth, monkeypatch):

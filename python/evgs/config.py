@@ -65,6 +65,7 @@ class InitConfig:
     search_sized: int
     search_starts: int
     search_tilt: float
+    search_veer: float
     search_smooth: bool
     search_range_weight: float
 
@@ -293,11 +294,12 @@ def _check_ranges(cfg: Config, source: str) -> None:
         or cfg.init.search_sized < 1
         or not 1 <= cfg.init.search_starts <= 2 * cfg.init.search_sized
         or not 0 <= cfg.init.search_tilt < 90
+        or not 0 <= cfg.init.search_veer < 90
     ):
         problems.append(
             "init.motion_search needs search_steps >= 1, search_rate > 0, search_range > 1, "
             "search_holdout >= 0, search_sized >= 1, 1 <= search_starts <= 2 × search_sized (the sized "
-            "orbits and translations) and 0 <= search_tilt < 90"
+            "orbits and translations), 0 <= search_tilt < 90 and 0 <= search_veer < 90"
         )
     if cfg.tracking.velocity_prior < 0 or (cfg.tracking.velocity_prior > 0 and cfg.tracking.solver != "lm"):
         problems.append("tracking.velocity_prior must be >= 0, and > 0 only with tracking.solver = 'lm'")

@@ -21,7 +21,10 @@ an elevation is), approach / retreat along the optical axis, sideways translatio
 directions, and no motion (``init.search_half_rate``: each also at half that rate). The best orbits
 and the best translations (``init.search_sized`` of each) are sized over × ``search_range``^(±½, ±1):
 each family's best at its own size, so that an approach slower than the nominal rate is not left
-behind orbits (docking_good). The joint initialization starts from the winner.
+behind orbits (docking_good). With ``init.search_veer``, when a translation wins, the best two sizes
+of the best translation are veered ± that angle towards each axis across their direction, and the best
+of all then ± half the angle: the basis moves along one axis, while a descent moves forward and
+sideways at once (docs/ablations.md §15, §17). The joint initialization starts from the winner.
 
 With ``init.search_polls`` > 0 a compass search in the same basis plus roll then adds what the family
 leaves out (roll, mixtures, an orbit centre off ``init_depth``), from the best sized direction or, with
@@ -92,6 +95,24 @@ def directions(rate: float, depth: float, tilt_deg: float = 0.0) -> Iterator[Hyp
             v = torch.zeros(6, dtype=torch.float64)
             v[axis] = sign * rate * depth
             yield Hypothesis(f"translate {s}{name}", v, "translate")
+
+
+def veered(h: Hypothesis, angle_deg: float) -> list[Hypothesis]:
+    """``h``'s translation turned by ± ``angle_deg`` towards each of two axes across it, at the same
+    speed and rotation: the polls of one step of a search over the translation's direction."""
+    v, w = h.twist[:3], h.twist[3:]
+    d = v / v.norm()
+    least = int(torch.argmin(d.abs()))  # the basis axis least aligned with d spans the plane across it
+    e1 = torch.linalg.cross(d, torch.eye(3, dtype=d.dtype)[least])
+    e1 = e1 / e1.norm()
+    e2 = torch.linalg.cross(d, e1)
+    c, s = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
+    out = []
+    for e, name in ((e1, "a"), (e2, "b")):
+        for sign in (1.0, -1.0):
+            label = f"{h.name} veer {name}{'+-'[sign < 0]}{angle_deg:g}°"
+            out.append(Hypothesis(label, torch.cat([v.norm() * (c * d + sign * s * e), w]), h.family))
+    return out
 
 
 def search_chunks(state: SlamState) -> tuple[int, int]:
@@ -232,11 +253,18 @@ def search_motion(state: SlamState, reporter: StageReporter | None = None) -> Se
     still, *moves = directions(cfg.search_rate, depth, cfg.search_tilt)
     trial(still)
     sized = [min((h, h.scaled(0.5)), key=trial) if cfg.search_half_rate else h for h in moves]
-    starts = []
+    starts, rungs = [], []
     for family in ("orbit", "translate"):
         for h in sorted((h for h in sized if h.family == family), key=trial)[: cfg.search_sized]:
-            ladder = [h] + [h.scaled(cfg.search_range**e) for e in (-1.0, -0.5, 0.5, 1.0)]
-            starts.append(min(ladder, key=trial))
+            ladder = sorted([h] + [h.scaled(cfg.search_range**e) for e in (-1.0, -0.5, 0.5, 1.0)], key=trial)
+            starts.append(ladder[0])
+            rungs += ladder[:2] if family == "translate" else []
+    if cfg.search_veer > 0 and trial.best()[0].family == "translate":
+        # Veered at the two best sizes: a sideways part changes the speed that explains the events best
+        # (descent: the basis approach wins at its nominal rate, the true direction at half of it).
+        for h in rungs:
+            min(veered(h, cfg.search_veer), key=trial)
+        min(veered(trial.best()[0], cfg.search_veer / 2), key=trial)
     if cfg.search_polls > 0 and trial.best()[0].name != "still":
         # Compass search in the basis of the hypotheses (orbit x/y, roll, translations), which the basis
         # motions alone miss: roll, mixtures and an orbit centre off init_depth, all of which the
