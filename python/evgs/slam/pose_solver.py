@@ -19,8 +19,8 @@ down move freely, those they barely see stay near constant velocity. Without it,
 takes slightly too small a step each frame (the loss is shallow along the orbit) and the local BA bends
 the map to match, until the estimate turns at a third of the true rate. The prior holds the
 initialization's errors and a true change of rate just as firmly (the swirl's turn slowing down and
-reversing), so it is off by default and on in the orbit configs, whose rate is steady
-(docs/ablations.md §10–11).
+reversing), so it is off by default and on in the orbit and descent configs, whose velocity is steady
+(docs/ablations.md §10–11, §17).
 """
 
 from __future__ import annotations
