@@ -258,13 +258,16 @@ def search_motion(state: SlamState, reporter: StageReporter | None = None) -> Se
         for h in sorted((h for h in sized if h.family == family), key=trial)[: cfg.search_sized]:
             ladder = sorted([h] + [h.scaled(cfg.search_range**e) for e in (-1.0, -0.5, 0.5, 1.0)], key=trial)
             starts.append(ladder[0])
-            rungs += ladder[:2] if family == "translate" else []
+            if family == "translate":
+                rungs += ladder[:2]
     if cfg.search_veer > 0 and trial.best()[0].family == "translate":
         # Veered at the two best sizes: a sideways part changes the speed that explains the events best
         # (descent: the basis approach wins at its nominal rate, the true direction at half of it).
-        for h in rungs:
-            min(veered(h, cfg.search_veer), key=trial)
-        min(veered(trial.best()[0], cfg.search_veer / 2), key=trial)
+        # Scoring is all a veer does: the best of everything scored is the winner.
+        for h in [v for rung in rungs for v in veered(rung, cfg.search_veer)]:
+            trial(h)
+        for h in veered(trial.best()[0], cfg.search_veer / 2):
+            trial(h)
     if cfg.search_polls > 0 and trial.best()[0].name != "still":
         # Compass search in the basis of the hypotheses (orbit x/y, roll, translations), which the basis
         # motions alone miss: roll, mixtures and an orbit centre off init_depth, all of which the
