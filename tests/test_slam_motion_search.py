@@ -173,6 +173,31 @@ def test_a_winning_translation_is_veered_towards_a_sideways_part(synth, monkeypa
         synth_state(synth, *sets, "init.search_veer=90")
 
 
+def test_a_winning_orbit_is_veered_towards_an_approach(synth, monkeypatch):
+    """A swirl's start: an orbit about +y whose camera also closes in, its translation 25° towards the
+    optical axis. The basis orbit wins; veered, its translation comes within 6° of the true direction at
+    the same rotation."""
+    orbit = next(h for h in directions(RATE, DEPTH) if h.name == "orbit +y").twist
+    v = orbit[:3]
+    ang = np.radians(25.0)
+    closing = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64) * v.norm()
+    truth = torch.cat([np.cos(ang) * v + np.sin(ang) * closing, orbit[3:]])
+
+    def fake_score(state, hyp, reporter):
+        return float(((hyp.twist - truth) / (RATE * DEPTH)).square().sum())
+
+    monkeypatch.setattr(motion_search, "score", fake_score)
+    sets = [f"gaussians.init_depth={DEPTH}", f"init.search_rate={RATE}", "init.search_polls=0"]
+    plain = search_motion(synth_state(synth, *sets))
+    assert plain.best.name == "orbit +y"
+    found = search_motion(synth_state(synth, *sets, "init.search_veer=20"))
+    assert found.best.name.startswith("orbit +y") and "veer" in found.best.name
+    assert len(found.tried) == 11 + 8 + 12 and found.score < 0.2 * plain.score
+    got, want = found.best.twist[:3], truth[:3]
+    assert np.degrees(np.arccos(float(got @ want / (got.norm() * want.norm())))) < 6.0
+    assert torch.equal(found.best.twist[3:], orbit[3:])
+
+
 def test_search_finds_the_minimum_of_a_known_score(synth, monkeypatch):
     """The search logic alone: a quadratic score around a motion outside the basis (an orbit about y at
     1.7× the nominal rate plus some roll and approach) is found from the basis hypotheses."""

@@ -21,10 +21,11 @@ an elevation is), approach / retreat along the optical axis, sideways translatio
 directions, and no motion (``init.search_half_rate``: each also at half that rate). The best orbits
 and the best translations (``init.search_sized`` of each) are sized over × ``search_range``^(±½, ±1):
 each family's best at its own size, so that an approach slower than the nominal rate is not left
-behind orbits (docking_good). With ``init.search_veer``, when a translation wins, the best two sizes
-of the best translation are veered ± that angle towards each axis across their direction, and the best
-of all then ± half the angle: the basis moves along one axis, while a descent moves forward and
-sideways at once (docs/ablations.md §15, §17). The joint initialization starts from the winner.
+behind orbits (docking_good). With ``init.search_veer``, the best two sizes of the winning family's
+best (an orbit or a translation) have their translation veered ± that angle towards each axis across
+it, and the best of all then ± half the angle: the basis moves along one axis, while a descent moves
+forward and sideways at once, and a swirl orbits and approaches at once (docs/ablations.md §15, §17,
+§21). The joint initialization starts from the winner.
 
 With ``init.search_polls`` > 0 a compass search in the same basis plus roll then adds what the family
 leaves out (roll, mixtures, an orbit centre off ``init_depth``), from the best sized direction or, with
@@ -253,18 +254,17 @@ def search_motion(state: SlamState, reporter: StageReporter | None = None) -> Se
     still, *moves = directions(cfg.search_rate, depth, cfg.search_tilt)
     trial(still)
     sized = [min((h, h.scaled(0.5)), key=trial) if cfg.search_half_rate else h for h in moves]
-    starts, rungs = [], []
+    starts, rungs = [], {}
     for family in ("orbit", "translate"):
         for h in sorted((h for h in sized if h.family == family), key=trial)[: cfg.search_sized]:
             ladder = sorted([h] + [h.scaled(cfg.search_range**e) for e in (-1.0, -0.5, 0.5, 1.0)], key=trial)
             starts.append(ladder[0])
-            if family == "translate":
-                rungs += ladder[:2]
-    if cfg.search_veer > 0 and trial.best()[0].family == "translate":
-        # Veered at the two best sizes: a sideways part changes the speed that explains the events best
-        # (descent: the basis approach wins at its nominal rate, the true direction at half of it).
-        # Scoring is all a veer does: the best of everything scored is the winner.
-        for h in [v for rung in rungs for v in veered(rung, cfg.search_veer)]:
+            rungs.setdefault(family, ladder[:2])
+    if cfg.search_veer > 0 and trial.best()[0].family in rungs:
+        # Veered at the two best sizes: a part across the basis motion changes the speed that explains the
+        # events best (descent: the basis approach wins at its nominal rate, the true direction at half of
+        # it). Scoring is all a veer does: the best of everything scored is the winner.
+        for h in [v for rung in rungs[trial.best()[0].family] for v in veered(rung, cfg.search_veer)]:
             trial(h)
         for h in veered(trial.best()[0], cfg.search_veer / 2):
             trial(h)
