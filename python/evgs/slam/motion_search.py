@@ -264,8 +264,9 @@ def search_motion(state: SlamState, reporter: StageReporter | None = None) -> Se
         # Veered at the two best sizes: a part across the basis motion changes the speed that explains the
         # events best (descent: the basis approach wins at its nominal rate, the true direction at half of
         # it). Scoring is all a veer does: the best of everything scored is the winner.
-        for h in [v for rung in rungs[trial.best()[0].family] for v in veered(rung, cfg.search_veer)]:
-            trial(h)
+        for rung in rungs[trial.best()[0].family]:
+            for h in veered(rung, cfg.search_veer):
+                trial(h)
         for h in veered(trial.best()[0], cfg.search_veer / 2):
             trial(h)
     if cfg.search_polls > 0 and trial.best()[0].name != "still":
