@@ -68,6 +68,30 @@ def test_on_rays_seeds_only_weighted_pixels_at_depths_in_range():
     assert torch.equal(again["means"], g["means"])
 
 
+def test_on_rays_tilted_puts_the_mid_depth_on_the_turned_plane_and_keeps_the_rays():
+    camera = Camera(width=40, height=30, fx=50.0, fy=45.0, cx=19.5, cy=14.5)
+    weights = torch.ones(30, 40)
+    flat = Gaussians.on_rays(500, weights, camera, (2.0, 2.0 + 1e-9), 0.2, 0.3, torch.Generator().manual_seed(3))
+    for tilt in (12.0, -20.0):
+        g = Gaussians.on_rays(
+            500, weights, camera, (2.0, 2.0 + 1e-9), 0.2, 0.3, torch.Generator().manual_seed(3), tilt
+        )
+        p = g["means"].detach().double()
+        t = np.radians(tilt)
+        normal = torch.tensor([0.0, np.sin(t), np.cos(t)], dtype=torch.float64)
+        assert torch.allclose(p @ normal, torch.full((500,), 2.0 * np.cos(t), dtype=torch.float64), atol=1e-6)
+        q = flat["means"].detach().double()  # the same rays (pixels) as the untilted seeding
+        assert torch.allclose(p[:, :2] / p[:, 2:], q[:, :2] / q[:, 2:], atol=1e-6)
+        bottom = p[:, 1] / p[:, 2] > 0.1
+        assert bool((p[bottom, 2] < 2.0).all() if tilt > 0 else (p[bottom, 2] > 2.0).all())
+
+
+def test_on_rays_rejects_a_tilt_that_puts_the_plane_behind_some_rows():
+    camera = Camera(width=40, height=30, fx=50.0, fy=45.0, cx=19.5, cy=14.5)  # rows reach ±18.4° up/down
+    with pytest.raises(ValueError, match="init_tilt_deg = 75"):
+        Gaussians.on_rays(10, torch.ones(30, 40), camera, (1.0, 2.0), 0.1, 0.1, torch.Generator(), 75.0)
+
+
 def test_on_rays_rejects_an_empty_activity_map_and_bad_depths():
     camera = Camera(width=4, height=3, fx=5.0, fy=5.0, cx=1.5, cy=1.0)
     gen = torch.Generator().manual_seed(0)

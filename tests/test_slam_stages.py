@@ -110,6 +110,9 @@ def test_event_seeding_needs_the_depth_range_ahead_of_the_camera(synth):
     u = (means[:, 0] / z * cam.fx + cam.cx).floor().long()
     v = (means[:, 1] / z * cam.fy + cam.cy).floor().long()
     assert bool(active[v, u].all())
+    with pytest.raises(ValueError, match="'box' seeding has no slab"):
+        box = config("gaussians.init_seeding=box", "gaussians.init_tilt_deg=5")
+        initial_gaussians(box.gaussians, data, 3, torch.Generator())
 
 
 def test_the_silhouettes_inside_is_seeded_when_its_outline_is_closed_within_the_fill_gap():

@@ -107,6 +107,7 @@ class GaussiansConfig:
     init_depth: float
     init_seeding: Literal["box", "events"]
     init_depth_spread: float
+    init_tilt_deg: float
     init_min_events: int
     init_fill_gap: int
     init_opacity: float

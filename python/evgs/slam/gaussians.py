@@ -8,6 +8,7 @@ a sigmoid, so dim colours (the usual state on a black background) still get full
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -99,10 +100,13 @@ class Gaussians:
         opacity: float,
         color: float,
         generator: torch.Generator,
+        tilt_deg: float = 0.0,
     ) -> Gaussians:
         """``num`` Gaussians on the rays of the first camera (at the identity) through pixels drawn with
         probability ∝ ``weights`` (H, W), at a uniform point in the pixel and a depth uniform in
-        ``depth_range``; scaled and oriented as :meth:`random`.
+        ``depth_range``; scaled and oriented as :meth:`random`. ``tilt_deg`` ≠ 0 turns the slab about the
+        camera's x axis (> 0: nearer at the image's bottom): a depth ``d`` on the optical axis becomes the
+        plane through ``(0, 0, d)`` turned by that angle, so the mid-depth points lie on one tilted plane.
 
         Against a black background every event comes from the target, so its pixels say where in the
         image the target is; only depth is unknown. Seeding there puts the whole budget on the target
@@ -121,7 +125,10 @@ class Gaussians:
         u = (pix % camera.width).double() + jitter[:, 0]
         v = (pix // camera.width).double() + jitter[:, 1]
         depth = lo + (hi - lo) * torch.rand(num, generator=generator, dtype=torch.float64)
-        means = camera_rays(u, v, camera) * depth[:, None]
+        rays = camera_rays(u, v, camera)
+        if tilt_deg:
+            depth = depth * tilted_plane_depth(rays, tilt_deg, camera)
+        means = rays * depth[:, None]
         g = cls.at(means, opacity, color)
         with torch.no_grad():  # isolated seeds (noise events) would get huge, slow, view-filling scales
             cap = torch.quantile(g["log_scales"][:, 0], 0.9)
@@ -188,6 +195,22 @@ def quat_to_rotmat(q: Tensor) -> Tensor:
 def camera_rays(u: Tensor, v: Tensor, camera: Camera) -> Tensor:
     """(N, 3) camera-frame rays through image points ``(u, v)`` (pixels), scaled to unit depth (z = 1)."""
     return torch.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, torch.ones_like(u)], -1)
+
+
+def tilted_plane_depth(rays: Tensor, tilt_deg: float, camera: Camera) -> Tensor:
+    """(N,) depth along unit-depth ``rays`` of the plane through ``(0, 0, 1)`` turned ``tilt_deg`` about
+    the camera's x axis: ``n·X = cos t`` with ``n = (0, sin t, cos t)``."""
+    t = math.radians(tilt_deg)
+    edge = (
+        max(camera.cy + 0.5, camera.height - 0.5 - camera.cy) / camera.fy
+    )  # farthest row's |y| at unit depth
+    if math.cos(t) - abs(math.sin(t)) * edge <= 0.05:
+        raise ValueError(
+            f"gaussians.init_tilt_deg = {tilt_deg:g}: the tilted plane would lie behind or along some of the "
+            f"camera's rows (|tilt| must stay under 90° minus the half field of view, here "
+            f"{90 - math.degrees(math.atan(edge)):.0f}°)"
+        )
+    return math.cos(t) / (math.cos(t) + math.sin(t) * rays[:, 1])
 
 
 def knn_log_scale(points: np.ndarray) -> np.ndarray:

@@ -54,7 +54,11 @@ def initial_gaussians(g: GaussiansConfig, data: EventData, m: int, generator: to
                 f"({spread:g}; init_depth_spread, else bounding_size): the seeded depths must lie ahead"
             )
         return Gaussians.on_rays(
-            g.num_init, weights, data.camera, depths, g.init_opacity, g.init_color, generator
+            g.num_init, weights, data.camera, depths, g.init_opacity, g.init_color, generator, g.init_tilt_deg
+        )
+    if g.init_tilt_deg:
+        raise ValueError(
+            "gaussians.init_tilt_deg tilts the 'events' seeding; the 'box' seeding has no slab to tilt"
         )
     gaussians = Gaussians.random(g.num_init, g.bounding_size, g.init_opacity, g.init_color, generator)
     with torch.no_grad():
