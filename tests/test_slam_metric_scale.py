@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 import torch
@@ -12,9 +10,15 @@ pytest.importorskip("evgs.render")
 
 from evgs.config import load_config  # noqa: E402
 from evgs.render import render  # noqa: E402
-from evgs.slam.gaussians import Gaussians  # noqa: E402
+from evgs.slam.gaussians import Gaussians, quat_to_rotmat  # noqa: E402
 from evgs.slam.guards import BrightnessAnchor  # noqa: E402
-from evgs.slam.metric_scale import apply_scale, estimate_scale, map_extent, range_scale  # noqa: E402
+from evgs.slam.metric_scale import (  # noqa: E402
+    apply_scale,
+    estimate_scale,
+    first_surface,
+    map_extent,
+    range_scale,
+)
 from evgs.slam.pipeline import write_metric_scale  # noqa: E402
 from evgs.slam.run_dir import RunDir  # noqa: E402
 from evgs.slam.state import SlamState  # noqa: E402
@@ -32,16 +36,11 @@ def synth(tmp_path_factory):
 
 def state_in_map_units(synth, *sets: str) -> tuple[SlamState, np.ndarray]:
     """The scene and its GT knots shrunk by ``TRUE_SCALE`` (what a monocular run might hold), and the
-    true range on the principal ray at the knot times, rendered from the metric scene."""
+    true range on the principal ray at the knot times: the metric scene's first surface there."""
     seq, scene = synth
     cfg = load_config("synthetic/tiny", ["data.event_contrast=0.2", *sets])
-    poses = torch.as_tensor(scene.poses)
-    principal = dataclasses.replace(seq.camera, width=1, height=1, cx=0.5, cy=0.5)
-    with torch.no_grad():
-        out = render(
-            **scene.gaussians.render_inputs(), viewmats=torch.linalg.inv(poses).float(), camera=principal
-        )
-    ranges = (out.depth / out.alpha).reshape(-1).double().numpy()
+    _, ranges = first_surface(scene.gaussians, torch.as_tensor(scene.poses))
+    ranges = ranges.numpy()
     g = Gaussians.from_state(scene.gaussians.state())
     state = SlamState(
         cfg, EventData.from_sequence(seq, cfg.data), Trajectory(scene.frames_us, scene.poses), g,
@@ -79,6 +78,83 @@ def test_range_meter_recovers_the_scale(synth):
         range_scale(state, scene.frames_us - 10**9, ranges, 0.5)
     with pytest.raises(ValueError, match="covers the image centre"):
         range_scale(state, scene.frames_us, ranges, 1.1)
+
+
+def flat_gaussian(depth: float, opacity: float, lateral: float = 0.0) -> dict[str, list]:
+    """A wide, thin Gaussian facing the camera at ``depth`` on the optical axis (shifted ``lateral`` in x)."""
+    logit = float(np.log(opacity / (1 - opacity)))
+    return {"means": [lateral, 0.0, depth], "log_scales": [0.0, 0.0, -3.0], "quats": [1.0, 0, 0, 0],
+            "opacity_logits": logit, "colors": [0.5]}  # fmt: skip
+
+
+def gaussians_of(*parts: dict[str, list]) -> Gaussians:
+    return Gaussians.from_state({k: torch.tensor([p[k] for p in parts]) for k in parts[0]})
+
+
+def test_first_surface_is_the_weighted_median_depth_not_the_mean():
+    T = torch.eye(4, dtype=torch.float64)[None]
+    # An opaque wall at 2 hides the one at 5: the mean depth is 2 as well, and so is the surface.
+    opacity, depth = first_surface(gaussians_of(flat_gaussian(2.0, 0.99), flat_gaussian(5.0, 0.99)), T)
+    assert float(opacity[0]) == pytest.approx(0.99 + 0.01 * 0.99) and float(depth[0]) == pytest.approx(2.0)
+    # A faint veil at 2 in front of a wall at 5: the light is lost at the wall (mean depth ~4.1).
+    opacity, depth = first_surface(gaussians_of(flat_gaussian(2.0, 0.3), flat_gaussian(5.0, 0.99)), T)
+    assert float(depth[0]) == pytest.approx(5.0)
+    # Seen from x = 0.5 the ray passes the wall's centre half a sigma off: alpha = 0.99·exp(−1/8).
+    shifted = torch.eye(4, dtype=torch.float64)
+    shifted[0, 3] = 0.5
+    opacity, depth = first_surface(gaussians_of(flat_gaussian(3.0, 0.99)), shifted[None])
+    assert float(opacity[0]) == pytest.approx(0.99 * np.exp(-0.125)) and float(depth[0]) == pytest.approx(3.0)
+    # Nothing ahead (the Gaussian is behind the camera): no opacity, no depth.
+    opacity, depth = first_surface(gaussians_of(flat_gaussian(-3.0, 0.99)), T)
+    assert float(opacity[0]) == 0.0 and np.isnan(float(depth[0]))
+
+
+def test_first_surface_matches_a_dense_march_along_a_tilted_ray():
+    g = small_random_map()
+    pose = torch.eye(4, dtype=torch.float64)
+    angle = 0.3
+    pose[:3, :3] = torch.tensor(
+        [[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]],
+        dtype=torch.float64,
+    )
+    pose[:3, 3] = torch.tensor([-0.4, 0.1, -0.2], dtype=torch.float64)
+    opacity, depth = first_surface(g, pose[None])
+    # Reference: each Gaussian's density sampled densely along the ray, its peak taken numerically.
+    t = torch.linspace(0.01, 20.0, 400_001, dtype=torch.float64)
+    points = pose[:3, 3] + t[:, None] * pose[:3, 2]
+    peaks, where = [], []
+    state = {k: v.detach().double() for k, v in g.state().items()}
+    for mean, rot, scale, o in zip(
+        state["means"], quat_to_rotmat(state["quats"]), state["log_scales"].exp(),
+        torch.sigmoid(state["opacity_logits"]), strict=True,
+    ):  # fmt: skip
+        local = (points - mean) @ rot / scale
+        density = torch.exp(-0.5 * (local**2).sum(1))
+        k = int(density.argmax())
+        peaks.append(min(float(o * density[k]), 0.99))
+        where.append(float(t[k]))
+    order = np.argsort(where)
+    a = np.array(peaks)[order]
+    a = np.where(a >= 1 / 255, a, 0.0)
+    w = a * np.cumprod(np.concatenate([[1.0], 1 - a[:-1]]))
+    assert 0.5 < w.sum() < 0.99 and (w > 0.01).sum() >= 3  # several Gaussians share the ray
+    assert float(opacity[0]) == pytest.approx(w.sum(), abs=1e-6)
+    assert float(depth[0]) == pytest.approx(
+        np.array(where)[order][np.searchsorted(np.cumsum(w), w.sum() / 2)], abs=1e-3
+    )
+
+
+def small_random_map() -> Gaussians:
+    """Twelve anisotropic, rotated Gaussians strung along x = z·tan(0.3) ahead of the test's ray."""
+    gen = torch.Generator().manual_seed(5)
+    t = torch.linspace(1.0, 8.0, 12)
+    means = torch.stack([-0.4 + t * np.sin(0.3), 0.1 + 0.0 * t, -0.2 + t * np.cos(0.3)], 1)
+    means = means + 0.3 * torch.randn(12, 3, generator=gen)
+    quats = torch.nn.functional.normalize(torch.randn(12, 4, generator=gen), dim=1)
+    return Gaussians.from_state({
+        "means": means, "log_scales": torch.log(0.2 + 0.5 * torch.rand(12, 3, generator=gen)), "quats": quats,
+        "opacity_logits": torch.randn(12, generator=gen), "colors": torch.full((12, 1), 0.5),
+    })  # fmt: skip
 
 
 def test_target_size_scales_the_map_extent(synth):

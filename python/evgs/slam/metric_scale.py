@@ -4,10 +4,12 @@ The event loss cannot see scale: scaling the map and every knot's translation by
 render unchanged. So a run ends with one similarity that makes its outputs metric:
 
 - ``range``: a range meter (ELOPE's, or the simulator's ``range.csv``) measures the distance along the
-  optical axis at the image centre; the map's expected depth on that ray at the same times (a 1×1 render
-  of the principal ray) is the same distance in map units. ``s`` = the median of their ratios over the
-  samples whose ray the map covers (alpha ≥ ``scale.min_alpha``), robust to samples that hit a part of
-  the target the map lacks.
+  optical axis at the image centre to the first surface it meets; the map's first surface on that ray at
+  the same times (:func:`first_surface`) is the same distance in map units. ``s`` = the median of their
+  ratios over the samples whose ray the map covers (opacity ≥ ``scale.min_alpha``), robust to samples
+  that hit a part of the target the map lacks. Not the rendered expected depth: a surface the map holds
+  half-transparent mixes what lies behind it into that (8–9 % deeper on docking_good, docs/ablations.md
+  §26).
 - ``target_size``: the map's largest extent (2nd–98th percentile of the opaque Gaussians' centres along
   their principal axes) is ``scale.target_size`` metres.
 """
@@ -19,11 +21,13 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from evgs.config import ScaleConfig
-from evgs.slam.gaussians import Gaussians
-from evgs.slam.range_prior import covered_ratios
+from evgs.slam.gaussians import Gaussians, quat_to_rotmat
 from evgs.slam.state import SlamState
+
+ALPHA_MIN, ALPHA_MAX = 1 / 255, 0.99  # the rasterizer's cut-off and clamp (src/raster/project.rs, forward.rs)
 
 
 @dataclass(frozen=True)
@@ -33,19 +37,61 @@ class ScaleEstimate:
     source: str
 
 
+@torch.no_grad()
+def first_surface(gaussians: Gaussians, T_wc: Tensor) -> tuple[Tensor, Tensor]:
+    """``(opacity, depth)`` (V,) on the optical axis of each camera-to-world pose ``T_wc`` (V, 4, 4):
+    the ray's total opacity ``1 − Π(1 − αᵢ)`` and the depth at which it has lost half of the light it
+    loses (the weighted median of the Gaussians' depths; NaN where nothing is hit).
+
+    Each Gaussian meets the ray where its density along it peaks, at ``t* = dᵀP(μ − o) / dᵀPd`` (``P``
+    the inverse covariance), with ``α = min(0.99, o·exp(−q/2))`` for the Mahalanobis distance ``q`` there;
+    the ray composites them front to back, as the rasterizer does a pixel.
+    """
+    means = gaussians["means"].double()
+    rot = quat_to_rotmat(gaussians["quats"].double())
+    precision = rot @ torch.diag_embed(torch.exp(-2 * gaussians["log_scales"].double())) @ rot.transpose(1, 2)
+    opacity = gaussians.opacities().double()
+    total = torch.zeros(len(T_wc), dtype=torch.float64)
+    depth = torch.full_like(total, math.nan)
+    for i, pose in enumerate(torch.as_tensor(T_wc, dtype=torch.float64)):
+        offset, axis = means - pose[:3, 3], pose[:3, 2]
+        p_axis = precision @ axis  # (N, 3): P d of every Gaussian
+        d_p_d = p_axis @ axis
+        t_star = (offset * p_axis).sum(1) / d_p_d
+        q = torch.einsum("ni,nij,nj->n", offset, precision, offset) - t_star**2 * d_p_d
+        alpha = torch.clamp(opacity * torch.exp(-0.5 * q.clamp(min=0)), max=ALPHA_MAX)
+        hit = (t_star > 0) & (alpha >= ALPHA_MIN)
+        order = torch.argsort(t_star[hit])
+        z, a = t_star[hit][order], alpha[hit][order]
+        if not len(z):
+            continue
+        weights = a * torch.cumprod(torch.cat([a.new_ones(1), 1 - a[:-1]]), 0)
+        total[i] = weights.sum()
+        half = int(torch.searchsorted(torch.cumsum(weights, 0), 0.5 * total[i]))
+        depth[i] = z[min(half, len(z) - 1)]
+    return total, depth
+
+
 def range_scale(state: SlamState, t_us: np.ndarray, ranges: np.ndarray, min_alpha: float) -> ScaleEstimate:
-    """Median of ``range / rendered depth`` on the principal ray over the samples inside the run."""
+    """Median of ``range / first-surface depth`` on the principal ray over the samples inside the run."""
     keep = np.isfinite(ranges) & (ranges > 0)
-    ratios, inside = covered_ratios(
-        state.gaussians, state.traj, t_us[keep], ranges[keep], state.data.camera,
-        state.cfg.gaussians.background, min_alpha,
-    )  # fmt: skip
+    t_us, ranges = t_us[keep], ranges[keep]
+    traj = state.traj
+    inside = (t_us >= int(traj.t_us[0])) & (t_us <= int(traj.t_us[-1]))
+    ratios = np.zeros(0)
+    if inside.any():
+        with torch.no_grad():
+            poses = traj.pose_at(t_us[inside]).double()
+            opacity, depth = first_surface(state.gaussians, poses)
+        covered = (opacity >= min_alpha).numpy()
+        ratios = ranges[inside][covered] / depth.numpy()[covered]
+    inside = int(inside.sum())
     if not inside:
         lo, hi = int(state.traj.t_us[0]), int(state.traj.t_us[-1])
         raise ValueError(f"scale: no range sample lies inside the run's time span [{lo}, {hi}] µs")
     if not len(ratios):
         raise ValueError(
-            f"scale: the map covers the image centre (alpha ≥ {min_alpha:g}) at none of the "
+            f"scale: the map covers the image centre (opacity ≥ {min_alpha:g}) at none of the "
             f"{inside} range samples; lower scale.min_alpha or use scale.source = 'target_size'"
         )
     return ScaleEstimate(float(np.median(ratios)), len(ratios), "range")
