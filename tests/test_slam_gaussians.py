@@ -71,11 +71,10 @@ def test_on_rays_seeds_only_weighted_pixels_at_depths_in_range():
 def test_on_rays_tilted_puts_the_mid_depth_on_the_turned_plane_and_keeps_the_rays():
     camera = Camera(width=40, height=30, fx=50.0, fy=45.0, cx=19.5, cy=14.5)
     weights = torch.ones(30, 40)
-    flat = Gaussians.on_rays(500, weights, camera, (2.0, 2.0 + 1e-9), 0.2, 0.3, torch.Generator().manual_seed(3))
+    thin = (2.0, 2.0 + 1e-9)
+    flat = Gaussians.on_rays(500, weights, camera, thin, 0.2, 0.3, torch.Generator().manual_seed(3))
     for tilt in (12.0, -20.0):
-        g = Gaussians.on_rays(
-            500, weights, camera, (2.0, 2.0 + 1e-9), 0.2, 0.3, torch.Generator().manual_seed(3), tilt
-        )
+        g = Gaussians.on_rays(500, weights, camera, thin, 0.2, 0.3, torch.Generator().manual_seed(3), tilt)
         p = g["means"].detach().double()
         t = np.radians(tilt)
         normal = torch.tensor([0.0, np.sin(t), np.cos(t)], dtype=torch.float64)
