@@ -201,9 +201,8 @@ def tilted_plane_depth(rays: Tensor, tilt_deg: float, camera: Camera) -> Tensor:
     """(N,) depth along unit-depth ``rays`` of the plane through ``(0, 0, 1)`` turned ``tilt_deg`` about
     the camera's x axis: ``n·X = cos t`` with ``n = (0, sin t, cos t)``."""
     t = math.radians(tilt_deg)
-    edge = (
-        max(camera.cy + 0.5, camera.height - 0.5 - camera.cy) / camera.fy
-    )  # farthest row's |y| at unit depth
+    # The farthest row's |y| at unit depth; the margin keeps every row's depth within 20× the axis's.
+    edge = max(camera.cy + 0.5, camera.height - 0.5 - camera.cy) / camera.fy
     if math.cos(t) - abs(math.sin(t)) * edge <= 0.05:
         raise ValueError(
             f"gaussians.init_tilt_deg = {tilt_deg:g}: the tilted plane would lie behind or along some of the "

@@ -8,7 +8,7 @@ render unchanged. So a run ends with one similarity that makes its outputs metri
   the same times (:func:`first_surface`) is the same distance in map units. ``s`` = the median of their
   ratios over the samples whose ray the map covers (opacity ≥ ``scale.min_alpha``), robust to samples
   that hit a part of the target the map lacks. Not the rendered expected depth: a surface the map holds
-  half-transparent mixes what lies behind it into that (8–9 % deeper on docking_good, docs/ablations.md
+  half-transparent mixes what lies behind it into that (4–8 % deeper on docking_good, docs/ablations.md
   §26).
 - ``target_size``: the map's largest extent (2nd–98th percentile of the opaque Gaussians' centres along
   their principal axes) is ``scale.target_size`` metres.
@@ -78,21 +78,18 @@ def range_scale(state: SlamState, t_us: np.ndarray, ranges: np.ndarray, min_alph
     t_us, ranges = t_us[keep], ranges[keep]
     traj = state.traj
     inside = (t_us >= int(traj.t_us[0])) & (t_us <= int(traj.t_us[-1]))
-    ratios = np.zeros(0)
-    if inside.any():
-        with torch.no_grad():
-            poses = traj.pose_at(t_us[inside]).double()
-            opacity, depth = first_surface(state.gaussians, poses)
-        covered = (opacity >= min_alpha).numpy()
-        ratios = ranges[inside][covered] / depth.numpy()[covered]
-    inside = int(inside.sum())
-    if not inside:
+    n_inside = int(inside.sum())
+    if not n_inside:
         lo, hi = int(state.traj.t_us[0]), int(state.traj.t_us[-1])
         raise ValueError(f"scale: no range sample lies inside the run's time span [{lo}, {hi}] µs")
+    with torch.no_grad():
+        opacity, depth = first_surface(state.gaussians, traj.pose_at(t_us[inside]))
+    covered = (opacity >= min_alpha).numpy()
+    ratios = ranges[inside][covered] / depth.numpy()[covered]
     if not len(ratios):
         raise ValueError(
             f"scale: the map covers the image centre (opacity ≥ {min_alpha:g}) at none of the "
-            f"{inside} range samples; lower scale.min_alpha or use scale.source = 'target_size'"
+            f"{n_inside} range samples; lower scale.min_alpha or use scale.source = 'target_size'"
         )
     return ScaleEstimate(float(np.median(ratios)), len(ratios), "range")
 
