@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -12,8 +14,10 @@ from evgs.config import load_config  # noqa: E402
 from evgs.render import render  # noqa: E402
 from evgs.slam.gaussians import Gaussians, quat_to_rotmat  # noqa: E402
 from evgs.slam.guards import BrightnessAnchor  # noqa: E402
+from evgs.slam.lie import se3_exp  # noqa: E402
 from evgs.slam.metric_scale import (  # noqa: E402
     apply_scale,
+    closing_scale,
     estimate_scale,
     first_surface,
     map_extent,
@@ -78,6 +82,51 @@ def test_range_meter_recovers_the_scale(synth):
         range_scale(state, scene.frames_us - 10**9, ranges, 0.5)
     with pytest.raises(ValueError, match="covers the image centre"):
         range_scale(state, scene.frames_us, ranges, 1.1)
+
+
+def test_closing_rate_scale_fits_the_advance_and_says_how_much_it_explains():
+    # An approach in map units (0.2 per step along the optical axis) to a wall 5 units ahead that the
+    # meter reads in metres at TRUE_SCALE: the fit recovers the scale and explains every decrease.
+    twist = torch.tensor([0.0, 0.0, 0.2, 0.0, 0.0, 0.0], dtype=torch.float64)
+    poses = se3_exp(torch.arange(12, dtype=torch.float64)[:, None] * twist[None])
+    t_us = np.arange(12, dtype=np.int64) * 100_000
+    traj = Trajectory(t_us, poses)
+    metres = TRUE_SCALE * (5.0 - 0.2 * np.arange(12))
+    fit = closing_scale(traj, t_us, metres)
+    assert fit is not None and fit.samples == 12
+    assert fit.scale == pytest.approx(TRUE_SCALE, rel=1e-9) and fit.explained == pytest.approx(1.0)
+    # Relief the ray sweeps: explained less; a range that only follows the target's shape: nothing.
+    rng = np.random.default_rng(0)
+    bumpy = metres + rng.normal(0.0, 0.05, 12)
+    assert 0.5 < closing_scale(traj, t_us, bumpy).explained < 0.999
+    still = Trajectory(t_us, se3_exp(torch.zeros(12, 6, dtype=torch.float64)))
+    assert closing_scale(still, t_us, metres) is None  # no advance: nothing to fit
+    assert closing_scale(traj, t_us[:1], metres[:1]) is None
+
+
+def test_range_scale_takes_the_closing_rate_where_it_explains_the_meter(synth):
+    _, scene = synth
+    state, ranges = state_in_map_units(synth)
+    cfg = load_config(overrides=["scale.source=range"]).scale
+    # The test scene orbits its target: the range follows the target's shape, the first surface decides.
+    orbit = dataclasses.replace(state, data=dataclasses.replace(state.data, ranges=(scene.frames_us, ranges)))
+    est = estimate_scale(orbit, cfg)
+    assert est is not None and est.source == "range, first surface"
+    assert est.scale == pytest.approx(TRUE_SCALE, rel=1e-4)
+    # The same knots, the meter reading an approach: the closing rate (the map plays no part).
+    poses = state.traj.knots().detach()
+    advance = ((poses[1:, :3, 3] - poses[:-1, :3, 3]) * poses[:-1, :3, 2]).sum(1).numpy()
+    approach = 20.0 - TRUE_SCALE * np.concatenate([[0.0], np.cumsum(advance)])
+    moved = dataclasses.replace(
+        state, data=dataclasses.replace(state.data, ranges=(scene.frames_us, approach))
+    )
+    est = estimate_scale(moved, cfg)
+    assert est is not None and est.source.startswith("range, closing rate")
+    assert est.scale == pytest.approx(TRUE_SCALE, rel=1e-6)
+    strict = dataclasses.replace(cfg, closing_min_explained=1.0)
+    bumpy = approach + np.where(np.arange(len(approach)) % 2, 0.01, -0.01)
+    moved = dataclasses.replace(state, data=dataclasses.replace(state.data, ranges=(scene.frames_us, bumpy)))
+    assert estimate_scale(moved, strict).source == "range, first surface"
 
 
 def flat_gaussian(depth: float, opacity: float, lateral: float = 0.0) -> dict[str, list]:

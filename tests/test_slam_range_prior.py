@@ -1,4 +1,5 @@
-"""The range meter inside the optimisation (``scale.range_weight``) on a scene whose truth is known."""
+"""The range meter inside the optimisation (``scale.range_weight``, ``scale.rate_weight``) on a scene whose
+truth is known."""
 
 from __future__ import annotations
 
@@ -14,9 +15,16 @@ from evgs.config import load_config  # noqa: E402
 from evgs.render import render  # noqa: E402
 from evgs.slam.gaussians import Gaussians  # noqa: E402
 from evgs.slam.guards import BrightnessAnchor  # noqa: E402
-from evgs.slam.lie import se3_inverse, se3_log  # noqa: E402
+from evgs.slam.lie import se3_exp, se3_inverse, se3_log  # noqa: E402
 from evgs.slam.metric_scale import apply_scale  # noqa: E402
-from evgs.slam.range_prior import HUBER, RangePrior, huber, huber_weights, principal_camera  # noqa: E402
+from evgs.slam.range_prior import (  # noqa: E402
+    HUBER,
+    RangePrior,
+    closing_residuals,
+    huber,
+    huber_weights,
+    principal_camera,
+)
 from evgs.slam.stages import track  # noqa: E402
 from evgs.slam.state import SlamState  # noqa: E402
 from evgs.slam.trajectory import Trajectory  # noqa: E402
@@ -45,9 +53,12 @@ def state_with_meter(synth, *sets: str) -> SlamState:
     cfg = load_config("synthetic/tiny", ["data.event_contrast=0.2", "gaussians.bounding_size=1.0", *sets])
     data = EventData.from_sequence(seq, cfg.data)
     data = dataclasses.replace(data, ranges=(scene.frames_us.copy(), metres))
+    prior = RangePrior.for_run(cfg, data)
+    if prior is not None and prior.seed_unit is not None:  # the scene's own unit, as if it had been seeded so
+        prior = dataclasses.replace(prior, seed_unit=UNIT)
     state = SlamState(
         cfg, data, Trajectory(scene.frames_us, scene.poses), Gaussians.from_state(scene.gaussians.state()),
-        torch.Generator().manual_seed(0), BrightnessAnchor(0.0), range_prior=RangePrior.for_run(cfg, data),
+        torch.Generator().manual_seed(0), BrightnessAnchor(0.0), range_prior=prior,
     )  # fmt: skip
     apply_scale(state, 1 / UNIT)
     return state
@@ -107,6 +118,121 @@ def test_residuals_vanish_at_the_truth_and_measure_relative_error(synth):
         assert float(uncovered.penalty(state.gaussians, traj, int(t[0]), int(t[-1]), UNIT)) == 0.0
 
 
+def approach(n: int, step: float, turn: float = 0.0) -> torch.Tensor:
+    """(n, 4, 4) camera-to-world poses ``step`` apart along the first camera's optical axis (+z), each
+    also turned by ``turn`` rad about its y axis: an approach to the plane z = 10 from z = 0."""
+    twist = torch.tensor([0.0, 0.0, step, 0.0, turn, 0.0], dtype=torch.float64)
+    return se3_exp(torch.arange(n, dtype=torch.float64)[:, None] * twist[None])
+
+
+def test_closing_rate_vanishes_on_an_approach_and_measures_a_wrong_speed():
+    poses = approach(5, 0.5)
+    axes = poses[:, :3, 2]
+    metres = 10.0 - 0.5 * np.arange(5)  # the plane z = 10 along the optical axis
+    assert float(closing_residuals(poses, axes, metres, 1.0).abs().max()) < 1e-12
+    # In map units of 2 m each: the same motion, the unit says how far it went.
+    shrunk = poses.clone()
+    shrunk[:, :3, 3] /= 2
+    assert float(closing_residuals(shrunk, axes, metres, 2.0).abs().max()) < 1e-12
+    # The approach at half its speed misses half of each decrease, relative to the range after it.
+    q = closing_residuals(approach(5, 0.25), axes, metres, 1.0)
+    assert torch.allclose(q, torch.as_tensor(-0.25 / metres[1:]))
+    # Only the advance along the given axes counts: turned 90° they see none of it.
+    turned = torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64).expand(5, 3)
+    assert torch.allclose(closing_residuals(poses, turned, metres, 1.0), torch.as_tensor(-0.5 / metres[1:]))
+    # Sideways past the plane, the range stays: nothing to correct. A batch of trials at once.
+    sideways = poses.clone()
+    sideways[:, 0, 3] = torch.arange(5.0, dtype=torch.float64)
+    sideways[:, 2, 3] = 0.0
+    batch = closing_residuals(torch.stack([sideways, poses]), axes, np.full(5, 10.0), 1.0)
+    assert batch.shape == (2, 4)
+    assert float(batch[0].abs().max()) < 1e-12
+    assert torch.allclose(batch[1], torch.tensor(0.5 / 10, dtype=torch.float64))
+
+
+def test_closing_rate_pairs_reach_back_one_sample_inside_the_trajectory(synth):
+    state = state_with_meter(synth, "scale.rate_weight=1")
+    prior, traj = state.range_prior, state.traj
+    t = prior.t_us
+    # A span holding one sample pairs it with the one before; at the trajectory's start there is none.
+    got, _ = prior.rate_samples(int(t[3]), int(t[4]) - 1, traj)
+    assert list(got) == [t[2], t[3]]
+    got, _ = prior.rate_samples(int(t[0]), int(t[1]) - 1, traj)
+    assert list(got) == [t[0]]
+    assert float(prior.rate_penalty(traj, int(t[0]), int(t[1]) - 1)) == 0.0
+    # Nothing in the span: nothing, not the sample before it.
+    got, _ = prior.rate_samples(int(t[-1]) + 1, int(t[-1]) + 10**6, traj)
+    assert len(got) == 0
+    short = Trajectory(t[:3], traj.knots()[:3].detach())
+    got, _ = prior.rate_samples(int(t[2]), int(t[-1]), short)
+    assert list(got) == [t[1], t[2]]
+
+
+def test_closing_rate_gradient_matches_autograd_and_finite_differences(synth):
+    """The penalty's gradient w.r.t. a knot's increment against central differences of the penalty with
+    the axes held where the increment has them (as the penalty holds them); the residuals' against
+    float64 autograd's numerical check."""
+    state = state_with_meter(synth, "scale.rate_weight=1")
+    prior, traj = state.range_prior, state.traj
+    poses = traj.pose_at(prior.t_us[:4]).detach().requires_grad_(True)
+    axes = poses.detach()[:, :3, 2].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(
+        lambda p, a: closing_residuals(p, a, prior.ranges[:4], UNIT), (poses, axes)
+    )
+    with torch.no_grad():
+        traj.delta[3] = torch.tensor([0.01, -0.02, 0.05, 0.01, 0.0, -0.01], dtype=traj.delta.dtype)
+    traj.set_trainable([3])
+    lo, hi = int(traj.t_us[2]), int(traj.t_us[4])
+    traj.delta.grad = None
+    prior.rate_penalty(traj, lo, hi).backward()
+    analytic = traj.delta.grad[3].double().clone()
+    t, metres = prior.rate_samples(lo, hi, traj)
+    with torch.no_grad():
+        axes = traj.pose_at(t)[:, :3, 2].clone()
+
+    def penalty() -> float:
+        return float(huber(closing_residuals(traj.pose_at(t), axes, metres, UNIT)).mean())
+
+    numeric = torch.zeros(6, dtype=torch.float64)
+    eps = 1e-4
+    with torch.no_grad():
+        base = traj.delta[3].clone()
+        for i in range(6):
+            values = []
+            for sign in (1.0, -1.0):
+                traj.delta[3] = base
+                traj.delta[3, i] += sign * eps
+                values.append(penalty())
+            numeric[i] = (values[0] - values[1]) / (2 * eps)
+        traj.delta[3] = base
+    assert float(analytic.norm()) > 1e-4
+    assert torch.allclose(analytic, numeric, rtol=0.02, atol=0.01 * float(numeric.norm())), (
+        analytic,
+        numeric,
+    )
+
+
+def test_closing_rate_unit_is_set_by_the_seeding(synth):
+    seq, _ = synth
+    cfg = load_config(
+        "synthetic/tiny", ["data.event_contrast=0.2", "scale.rate_weight=1", "gaussians.init_depth=4"]
+    )
+    data = EventData.from_sequence(seq, cfg.data)
+    t = data.frames_us.astype(np.int64)
+    metres = np.linspace(10.0, 8.0, len(t))
+    before = np.concatenate([[t[0] - 1000], t[2:]]), np.concatenate([[99.0], metres[2:]])
+    prior = RangePrior.for_run(cfg, dataclasses.replace(data, ranges=before))
+    # The first reading at or after the first frame is the seeding's depth, 4 map units.
+    assert prior.seed_unit == pytest.approx(metres[2] / 4)
+    boxed = load_config(
+        "synthetic/tiny", ["data.event_contrast=0.2", "scale.rate_weight=1", "gaussians.init_depth=0"]
+    )
+    with pytest.raises(ValueError, match="init_depth"):
+        RangePrior.for_run(boxed, dataclasses.replace(data, ranges=(t, metres)))
+    with pytest.raises(ValueError, match="first frame"):
+        RangePrior.for_run(cfg, dataclasses.replace(data, ranges=(t[:1] - 1000, metres[:1])))
+
+
 def test_huber_is_quadratic_then_linear_and_its_irls_weights_agree():
     q = torch.tensor([-0.3, -HUBER, -0.01, 0.0, 0.02, HUBER, 0.2], dtype=torch.float64, requires_grad=True)
     h = huber(q)
@@ -151,23 +277,24 @@ def test_penalty_gradient_matches_finite_differences(synth):
     )
 
 
+@pytest.mark.parametrize("term", ["scale.range_weight", "scale.rate_weight"])
 @pytest.mark.parametrize(
     "solver_sets",
     [("tracking.solver=lm", "tracking.num_opti_steps=8"),
      ("tracking.solver=adam", "tracking.num_opti_steps=40", "trajectory.pose_lr=3e-3")],
     ids=["lm", "adam"],
 )  # fmt: skip
-def test_tracking_follows_the_meter_along_the_optical_axis(synth, solver_sets):
+def test_tracking_follows_the_meter_along_the_optical_axis(synth, solver_sets, term):
     """The meter reads the newest frame 5 % short of the truth the events were made from: with a heavy
-    range weight tracking moves the new knot most of the way to the meter along its optical axis;
-    without the prior it stays at the truth. So both solvers minimise the range term."""
+    weight on either of its terms tracking moves the new knot most of the way to the meter along its
+    optical axis; without them it stays at the truth. So both solvers minimise both terms."""
     seq, scene = synth
     k = 4
     moved = {}
     for weight in (0.0, 1000.0):
         sets = [
             *solver_sets,
-            f"scale.range_weight={weight}",
+            f"{term}={weight}",
             "economy.coarse_factor=1",
             "tracking.mask_alpha=-1",
             "tracking.velocity_prior=0",  # the range term alone

@@ -181,6 +181,8 @@ class ScaleConfig:
     target_size: float
     min_alpha: float
     range_weight: float
+    rate_weight: float
+    closing_min_explained: float
 
 
 @dataclass(frozen=True)
@@ -283,8 +285,12 @@ def _check_ranges(cfg: Config, source: str) -> None:
     ]:
         if not 0 < value < 1:
             problems.append(f"{key} must be in (0, 1)")
-    if cfg.scale.range_weight < 0 or cfg.init.search_range_weight < 0:
-        problems.append("scale.range_weight and init.search_range_weight must be >= 0 (0 = off)")
+    if min(cfg.scale.range_weight, cfg.scale.rate_weight, cfg.init.search_range_weight) < 0:
+        problems.append(
+            "scale.range_weight, scale.rate_weight and init.search_range_weight must be >= 0 (0 = off)"
+        )
+    if not 0 <= cfg.scale.closing_min_explained <= 1:
+        problems.append("scale.closing_min_explained must be in [0, 1]")
     if cfg.scale.source == "target_size" and cfg.scale.target_size <= 0:
         problems.append("scale.source = 'target_size' needs scale.target_size > 0 (metres)")
     if cfg.init.motion_search and (

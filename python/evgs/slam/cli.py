@@ -111,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
         uses = {
             "scale.source = 'range'": cfg.scale.source == "range",
             "scale.range_weight > 0": cfg.scale.range_weight > 0,
+            "scale.rate_weight > 0": cfg.scale.rate_weight > 0,
             "init.search_range_weight > 0": cfg.init.search_range_weight > 0,
         }
         for key in (k for k, on in uses.items() if on and data.ranges is None):

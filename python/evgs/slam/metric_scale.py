@@ -4,12 +4,20 @@ The event loss cannot see scale: scaling the map and every knot's translation by
 render unchanged. So a run ends with one similarity that makes its outputs metric:
 
 - ``range``: a range meter (ELOPE's, or the simulator's ``range.csv``) measures the distance along the
-  optical axis at the image centre to the first surface it meets; the map's first surface on that ray at
-  the same times (:func:`first_surface`) is the same distance in map units. ``s`` = the median of their
-  ratios over the samples whose ray the map covers (opacity ≥ ``scale.min_alpha``), robust to samples
-  that hit a part of the target the map lacks. Not the rendered expected depth: a surface the map holds
-  half-transparent mixes what lies behind it into that (4–8 % deeper on docking_good, docs/ablations.md
-  §26).
+  optical axis at the image centre to the first surface it meets. Two ways to read it, chosen by how
+  much of the meter's change the trajectory's own motion explains:
+  - the *closing rate* (:func:`closing_scale`): between consecutive samples the range falls by as much
+    as the camera advances along its optical axis (a surface facing the camera: an approach, a
+    descent). ``s`` = the least-squares ratio of the decreases to the advances over the run. It needs
+    the trajectory only, and the trajectory is what must come out metric: the map's depth can be a few
+    per cent off its trajectory (docs/ablations.md §26, §28). Used when the advances explain at least
+    ``scale.closing_min_explained`` of the decreases' energy (≈ 1 on approaches and descents).
+  - the *first surface* (:func:`range_scale`), otherwise (an orbit: the range changes with the target's
+    shape while the camera hardly advances): the map's first surface on that ray at the same times
+    (:func:`first_surface`) is the same distance in map units. ``s`` = the median of their ratios over
+    the samples whose ray the map covers (opacity ≥ ``scale.min_alpha``), robust to samples that hit a
+    part of the target the map lacks. Not the rendered expected depth: a surface the map holds
+    half-transparent mixes what lies behind it into that (4–8 % deeper on docking_good, §26).
 - ``target_size``: the map's largest extent (2nd–98th percentile of the opaque Gaussians' centres along
   their principal axes) is ``scale.target_size`` metres.
 """
@@ -25,7 +33,9 @@ from torch import Tensor
 
 from evgs.config import ScaleConfig
 from evgs.slam.gaussians import Gaussians, quat_to_rotmat
+from evgs.slam.range_prior import axial_advance
 from evgs.slam.state import SlamState
+from evgs.slam.trajectory import Trajectory
 
 ALPHA_MIN, ALPHA_MAX = 1 / 255, 0.99  # the rasterizer's cut-off and clamp (src/raster/project.rs, forward.rs)
 
@@ -72,26 +82,53 @@ def first_surface(gaussians: Gaussians, T_wc: Tensor) -> tuple[Tensor, Tensor]:
     return total, depth
 
 
+def samples_inside(traj: Trajectory, t_us: np.ndarray, ranges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The valid samples (finite, positive) inside the run's time span, in time order; an error if none."""
+    keep = np.isfinite(ranges) & (ranges > 0) & (t_us >= int(traj.t_us[0])) & (t_us <= int(traj.t_us[-1]))
+    if not keep.any():
+        lo, hi = int(traj.t_us[0]), int(traj.t_us[-1])
+        raise ValueError(f"scale: no range sample lies inside the run's time span [{lo}, {hi}] µs")
+    order = np.argsort(t_us[keep], kind="stable")
+    return t_us[keep][order], ranges[keep][order]
+
+
+@dataclass(frozen=True)
+class ClosingFit:
+    scale: float  # metres per map unit
+    explained: float  # share of the decreases' energy the advances explain, 1 − Σ(Δr − s·adv)² / ΣΔr²
+    samples: int
+
+
+@torch.no_grad()
+def closing_scale(traj: Trajectory, t_us: np.ndarray, ranges: np.ndarray) -> ClosingFit | None:
+    """Least-squares ``s`` of ``Δr ≈ s · advance`` over consecutive samples (time-ordered, inside the
+    trajectory): the meter's decrease against the camera's advance along its optical axis. None with
+    fewer than two samples or no advance."""
+    if len(t_us) < 2:
+        return None
+    poses = traj.pose_at(t_us).double()
+    advance = axial_advance(poses, poses[:, :3, 2]).numpy()
+    decrease = ranges[:-1] - ranges[1:]
+    if not (advance @ advance > 0 and decrease @ decrease > 0):
+        return None
+    s = float(advance @ decrease / (advance @ advance))
+    explained = 1.0 - float(((decrease - s * advance) ** 2).sum() / (decrease @ decrease))
+    return ClosingFit(s, explained, len(t_us))
+
+
 def range_scale(state: SlamState, t_us: np.ndarray, ranges: np.ndarray, min_alpha: float) -> ScaleEstimate:
     """Median of ``range / first-surface depth`` on the principal ray over the samples inside the run."""
-    keep = np.isfinite(ranges) & (ranges > 0)
-    t_us, ranges = t_us[keep], ranges[keep]
-    traj = state.traj
-    inside = (t_us >= int(traj.t_us[0])) & (t_us <= int(traj.t_us[-1]))
-    n_inside = int(inside.sum())
-    if not n_inside:
-        lo, hi = int(state.traj.t_us[0]), int(state.traj.t_us[-1])
-        raise ValueError(f"scale: no range sample lies inside the run's time span [{lo}, {hi}] µs")
+    t_us, ranges = samples_inside(state.traj, t_us, ranges)
     with torch.no_grad():
-        opacity, depth = first_surface(state.gaussians, traj.pose_at(t_us[inside]))
+        opacity, depth = first_surface(state.gaussians, state.traj.pose_at(t_us))
     covered = (opacity >= min_alpha).numpy()
-    ratios = ranges[inside][covered] / depth.numpy()[covered]
+    ratios = ranges[covered] / depth.numpy()[covered]
     if not len(ratios):
         raise ValueError(
             f"scale: the map covers the image centre (opacity ≥ {min_alpha:g}) at none of the "
-            f"{n_inside} range samples; lower scale.min_alpha or use scale.source = 'target_size'"
+            f"{len(t_us)} range samples; lower scale.min_alpha or use scale.source = 'target_size'"
         )
-    return ScaleEstimate(float(np.median(ratios)), len(ratios), "range")
+    return ScaleEstimate(float(np.median(ratios)), len(ratios), "range, first surface")
 
 
 @torch.no_grad()
@@ -115,7 +152,11 @@ def estimate_scale(state: SlamState, cfg: ScaleConfig) -> ScaleEstimate | None:
     seq_ranges = state.data.ranges
     if seq_ranges is None:
         raise ValueError("scale.source = 'range' but the sequence has no range.csv")
-    return range_scale(state, *seq_ranges, cfg.min_alpha)
+    t_us, ranges = samples_inside(state.traj, *seq_ranges)
+    fit = closing_scale(state.traj, t_us, ranges)
+    if fit is not None and fit.scale > 0 and fit.explained >= cfg.closing_min_explained:
+        return ScaleEstimate(fit.scale, fit.samples, f"range, closing rate ({fit.explained:.1%} explained)")
+    return range_scale(state, t_us, ranges, cfg.min_alpha)
 
 
 @torch.no_grad()

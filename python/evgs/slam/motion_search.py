@@ -36,7 +36,9 @@ noise, so on an approach it adds a spurious rotation that tracking carries on (d
 Two measured options, off by default (docs/ablations.md §9): ``init.search_smooth`` refits on a fixed
 schedule without densification or pruning, so that the score changes smoothly with the motion (by
 default scores of motions 2 % apart differ by up to 10 %); ``init.search_range_weight`` adds the range
-meter's term (:mod:`evgs.slam.range_prior`) to the score.
+meter's term (:mod:`evgs.slam.range_prior`) to the score. ``scale.rate_weight`` adds the meter's closing
+rate to it as to every stage: it needs no map, so it sizes an approach even where the refitted maps leave
+the image centre empty (docking_low, docs/ablations.md §28).
 """
 
 from __future__ import annotations
@@ -177,7 +179,7 @@ def score(state: SlamState, hyp: Hypothesis, reporter: StageReporter | None) -> 
         n = m + holdout
         trial.traj = Trajectory(data.frames_us[: n + 1], hyp.knots(n + 1), cfg.trajectory.interpolation)
         spans.append(data.span_with_min(m, n))
-    weight = cfg.init.search_range_weight
+    weight, rate_weight = cfg.init.search_range_weight, cfg.scale.rate_weight
     means, unit = [], range_unit(trial, weight)
     for span in spans:
         sampler = data.sampler(span, stage_seed(cfg.seed, "search", 0))
@@ -187,7 +189,7 @@ def score(state: SlamState, hyp: Hypothesis, reporter: StageReporter | None) -> 
                 win = data.windows(sampler, 1, 1)
                 gray = render_windows(trial, win, data.camera).color[..., 0]
                 losses.append(float(event_loss(win.frames, gray[:1], gray[1:], cfg.loss).total))
-            means.append(np.mean(losses) + float(range_penalty(trial, span, unit, weight)))
+            means.append(np.mean(losses) + float(range_penalty(trial, span, unit, weight, rate_weight)))
     return float(np.mean(means))
 
 

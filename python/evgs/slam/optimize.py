@@ -97,13 +97,21 @@ def range_unit(state: SlamState, weight: float) -> float | None:
 
 
 def range_penalty(
-    state: SlamState, span: tuple[int, int], unit: float | None, weight: float
+    state: SlamState, span: tuple[int, int], unit: float | None, weight: float, rate_weight: float
 ) -> Tensor | float:
-    """``weight`` × the range meter's term (:mod:`evgs.slam.range_prior`) over the samples in the chunks of
-    the event index range ``span``; 0 without a meter or a unit."""
-    if state.range_prior is None or weight == 0:
+    """The range meter's terms (:mod:`evgs.slam.range_prior`) over the samples in the chunks of the event
+    index range ``span``: ``weight`` × the map's depth against the range (at ``unit``; none without
+    one), ``rate_weight`` × the closing rate; 0 without a meter."""
+    prior = state.range_prior
+    if prior is None:
         return 0.0
-    return weight * state.range_prior.penalty(state.gaussians, state.traj, *state.data.time_span(span), unit)
+    t_lo, t_hi = state.data.time_span(span)
+    total: Tensor | float = 0.0
+    if weight and unit is not None:
+        total = total + weight * prior.penalty(state.gaussians, state.traj, t_lo, t_hi, unit)
+    if rate_weight:
+        total = total + rate_weight * prior.rate_penalty(state.traj, t_lo, t_hi)
+    return total
 
 
 def loss_step(
@@ -123,7 +131,7 @@ def loss_step(
     total = terms.total
     if spec.anchored:
         total = total + state.anchor.penalty(out.color, out.alpha)
-    total = total + range_penalty(state, spec.span, unit, cfg.scale.range_weight)
+    total = total + range_penalty(state, spec.span, unit, cfg.scale.range_weight, cfg.scale.rate_weight)
     w = cfg.trajectory.smoothness
     if w > 0 and len(spec.trainable_knots):
         total = total + w * state.traj.acceleration_penalty(cfg.gaussians.bounding_size).float()

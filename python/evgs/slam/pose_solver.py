@@ -36,7 +36,7 @@ from evgs.render import render
 from evgs.slam.lie import se3_exp, se3_inverse
 from evgs.slam.loss import event_mask, pointwise_error, predicted_events, valid_mask
 from evgs.slam.optimize import StageReporter, StageSpec, range_unit, window_times
-from evgs.slam.range_prior import huber, huber_weights
+from evgs.slam.range_prior import closing_residuals, huber, huber_weights
 from evgs.slam.state import SlamState, StageRecord
 from evgs.slam.windows import Windows, scaled_camera
 
@@ -50,6 +50,7 @@ class Residuals:
     events: Tensor  # (V, B, h, w) ``Ê − E``
     alpha: Tensor  # (V, 2, B, h, w) rendered alpha at the window starts and ends
     ranges: Tensor | None  # (V, S) the range meter's relative errors (NaN = unused), None without samples
+    rates: Tensor | None  # (V, S − 1) the meter's closing-rate errors, None without a pair of samples
 
 
 def residuals(
@@ -73,33 +74,53 @@ def residuals(
             **state.gaussians.render_inputs(), viewmats=viewmats,
             camera=scaled_camera(state.data.camera, factor), background=cfg.gaussians.background,
         )  # fmt: skip
-        ranges = None
-        if state.range_prior is not None and unit is not None:
-            t_r, metres = state.range_prior.samples(*state.data.time_span(span), traj)
-            if len(t_r):
+        ranges = rates = None
+        prior = state.range_prior
+        if prior is not None:
+            t_lo, t_hi = state.data.time_span(span)
+            t_r, metres = prior.samples(t_lo, t_hi, traj)
+            if len(t_r) and unit is not None:
                 range_views = se3_inverse(torch.cat([traj.pose_at(t_r, trial) for trial in trials])).float()
-                q = state.range_prior.residuals(
-                    state.gaussians, range_views, np.tile(metres, len(deltas)), unit
-                )
+                q = prior.residuals(state.gaussians, range_views, np.tile(metres, len(deltas)), unit)
                 ranges = q.reshape(len(deltas), len(t_r))
+            t_r, metres = prior.rate_samples(t_lo, t_hi, traj)
+            if len(t_r) > 1 and cfg.scale.rate_weight:
+                poses = torch.stack([traj.pose_at(t_r, trial) for trial in trials])
+                # the axes of the increment itself (variant 0): the meter does not see where the camera points
+                rates = closing_residuals(poses, poses[0, :, :3, 2], metres, prior.seed_unit)
     b = len(win.starts)
     gray = out.color[..., 0].reshape(len(deltas), 2, b, *out.color.shape[1:3])
     alpha = out.alpha.reshape(len(deltas), 2, b, *out.alpha.shape[1:3])
-    return Residuals(predicted_events(gray[:, 0], gray[:, 1], cfg.loss) - win.frames, alpha, ranges)
+    return Residuals(predicted_events(gray[:, 0], gray[:, 1], cfg.loss) - win.frames, alpha, ranges, rates)
 
 
-def range_cost(state: SlamState, q: Tensor | None, used: Tensor | None) -> float:
-    """The range meter's term of the cost for one row of residuals (0 without a prior or used views;
-    NaN, so the step is rejected, if a used view lost its coverage)."""
-    if state.range_prior is None or q is None or used is None or not bool(used.any()):
+def meter_cost(weight: float, q: Tensor | None, used: Tensor | None) -> float:
+    """``weight`` × one of the range meter's terms for one row of residuals ``q`` (0 without residuals
+    or used samples; NaN, so the step is rejected, if a used sample lost its coverage)."""
+    if q is None or used is None or not bool(used.any()):
         return 0.0
-    return state.cfg.scale.range_weight * float(huber(q[used].double()).mean())
+    return weight * float(huber(q[used].double()).mean())
+
+
+def meter_rows(
+    q: Tensor, eps: Tensor, weight: float, rows: int
+) -> tuple[Tensor, Tensor, float, Tensor]:  # fmt: skip
+    """Gauss–Newton ``(H, g)`` of one of the range meter's terms from its residuals ``q`` (13, S) at the
+    variants of :func:`lm_track`, scaled to the data rows' ``rows·cost``; its cost at the increment; the
+    samples used (those the variants all cover)."""
+    used = ~torch.isnan(q).any(0)
+    if not bool(used.any()):
+        return torch.zeros(6, 6, dtype=torch.float64), torch.zeros(6, dtype=torch.float64), 0.0, used
+    qu = q[:, used].double()
+    jq = (qu[1:7] - qu[7:13]) / (2 * eps[:, None])
+    wq = huber_weights(qu[0]) * rows * weight / qu.shape[1]
+    return (jq * wq) @ jq.T, (jq * wq) @ qu[0], meter_cost(weight, q[0], used), used
 
 
 def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None = None) -> StageRecord:
     """Optimise the single trainable knot of ``spec`` by Levenberg–Marquardt; rebases at the end."""
     cfg, data, traj = state.cfg, state.data, state.traj
-    tc, econ, kind, prior = cfg.tracking, cfg.economy, cfg.loss.event_loss, state.range_prior
+    tc, econ, kind, sc = cfg.tracking, cfg.economy, cfg.loss.event_loss, cfg.scale
     (knot,) = spec.trainable_knots
     sampler = data.sampler(spec.span, spec.seed)
     traj.set_trainable([knot])
@@ -109,7 +130,7 @@ def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None =
     delta, lam, unit = (
         torch.zeros(6, dtype=torch.float64),
         tc.lm_damping,
-        range_unit(state, cfg.scale.range_weight),
+        range_unit(state, sc.range_weight),
     )
     coarse_end = int(econ.coarse_fraction * spec.iterations) if econ.coarse_factor > 1 else 0
     t0, n_events, loss, stopped, it = time.perf_counter(), 0, float("nan"), False, -1
@@ -132,15 +153,12 @@ def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None =
         cost0 = float(pointwise_error(r0, kind).mean())
         # hess and grad are of rows·cost: P·cost (MSE) or 2P·cost (L1 by IRLS: |r| ≈ r²/2|r₀| + const).
         rows = len(r0) * (2 if kind == "l1" else 1)
-        used = None
-        if prior is not None and res.ranges is not None:  # the range meter's rows: same views, increments
-            used = ~torch.isnan(res.ranges).any(0)
-            if bool(used.any()):
-                q = res.ranges[:, used].double()
-                jq = (q[1:7] - q[7:13]) / (2 * eps[:, None])
-                wq = huber_weights(q[0]) * rows * cfg.scale.range_weight / q.shape[1]
-                hess, grad = hess + (jq * wq) @ jq.T, grad + (jq * wq) @ q[0]
-                cost0 += range_cost(state, res.ranges[0], used)
+        meters = []  # the range meter's rows: same views, increments
+        for weight, name in ((sc.range_weight, "ranges"), (sc.rate_weight, "rates")):
+            if (q := getattr(res, name)) is not None:
+                h, g, c, used = meter_rows(q, eps, weight, rows)
+                hess, grad, cost0 = hess + h, grad + g, cost0 + c
+                meters.append((weight, name, used))
         # The pull towards the constant-velocity prediction (delta = 0); zero when the prior is off.
         prior_h = tc.velocity_prior * torch.diag(hess.diagonal())
         hess, grad = hess + prior_h, grad + prior_h @ delta
@@ -150,7 +168,9 @@ def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None =
         if bool(torch.isfinite(step).all()) and float((step.abs() / eps).max()) <= MAX_STEP:
             trial = residuals(state, knot, (delta + step)[None], win, factor, spec.span, unit)
             cost1 = float(pointwise_error(trial.events[0][mask].double(), kind).mean())
-            cost1 += range_cost(state, None if trial.ranges is None else trial.ranges[0], used)
+            for weight, name, used in meters:
+                q = getattr(trial, name)
+                cost1 += meter_cost(weight, None if q is None else q[0], used)
             cost1 += float((delta + step) @ prior_h @ (delta + step)) / rows
         if cost1 < cost0:
             delta, lam, loss = delta + step, max(lam / 3, 1e-7), cost1

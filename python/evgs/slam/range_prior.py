@@ -19,6 +19,20 @@ until its end, :mod:`evgs.slam.metric_scale`). The term moves the poses only: th
 events' to place — free to move, a few of them on the principal ray would echo any range sequence
 back (an orbit with a star of surfaces about its centre), and the motion search could not tell an
 orbit from an approach.
+
+``scale.rate_weight`` adds a second, map-free term: between consecutive samples the camera's advance
+along its optical axis, in metres, equals the decrease of the range, ``q = (u₀·aᵢ·(Cᵢ₊₁ − Cᵢ) − (rᵢ −
+rᵢ₊₁)) / rᵢ₊₁`` — exact for a flat surface facing the camera, as the target of an approach or the ground
+of a descent is, and a small error where the ray sweeps relief. Two choices make it independent of the
+map's depth on the principal ray (too rough to steer poses by, §9; empty in the dark, where the centre
+of a uniform face fires no events):
+- its unit ``u₀`` is fixed once, by the seeding: the map is seeded around ``gaussians.init_depth`` on the
+  first camera's axis, so the meter's first reading is that depth in metres. The meter thereby sets the
+  run's gauge from the start, and the map, shaped by the events, follows the trajectory;
+- the axis ``aᵢ`` is held where the pose has it (no gradient): the meter measures how far the camera
+  advanced, not where it points, and a tracker free to turn the axis would trade rotation for it.
+In the dark, where the looming of the few edges that fire hardly tells the tracker how fast the camera
+closes in, it does (docs/ablations.md §28).
 """
 
 from __future__ import annotations
@@ -70,6 +84,20 @@ def covered_ratios(
     return metres[inside][covered] / depth.double().numpy()[covered], int(inside.sum())
 
 
+def axial_advance(poses: Tensor, axes: Tensor) -> Tensor:
+    """(..., S − 1) ``aᵢ·(Cᵢ₊₁ − Cᵢ)``: how far camera-to-world ``poses`` (..., S, 4, 4) advance between
+    consecutive ones along the optical axes ``axes`` (S, 3), given apart (the callers hold them fixed)."""
+    return (axes[:-1] * (poses[..., 1:, :3, 3] - poses[..., :-1, :3, 3])).sum(-1)
+
+
+def closing_residuals(poses: Tensor, axes: Tensor, metres: np.ndarray, unit: float) -> Tensor:
+    """(..., S − 1) ``(unit·aᵢ·(Cᵢ₊₁ − Cᵢ) − (rᵢ − rᵢ₊₁)) / rᵢ₊₁`` at S consecutive range samples ``metres``
+    (S,) (:func:`axial_advance`): how far the camera's advance misses the range's decrease, relative to
+    the range."""
+    r = torch.as_tensor(np.asarray(metres, dtype=np.float64), dtype=poses.dtype)
+    return (unit * axial_advance(poses, axes) - (r[:-1] - r[1:])) / r[1:]
+
+
 def huber(q: Tensor) -> Tensor:
     """``q²`` for ``|q| ≤ HUBER``, continued linearly (with the same slope) beyond."""
     a = q.abs()
@@ -88,12 +116,13 @@ class RangePrior:
     min_alpha: float
     camera: Camera
     background: float
+    seed_unit: float | None = None  # metres per map unit set by the seeding (the closing rate's u₀)
 
     @classmethod
     def for_run(cls, cfg: Config, data: EventData) -> RangePrior | None:
-        """The prior of a run on ``data`` (None when neither ``scale.range_weight`` nor
-        ``init.search_range_weight`` is > 0)."""
-        if cfg.scale.range_weight == 0 and cfg.init.search_range_weight == 0:
+        """The prior of a run on ``data`` (None when ``scale.range_weight``, ``scale.rate_weight`` and
+        ``init.search_range_weight`` are all 0)."""
+        if cfg.scale.range_weight == 0 and cfg.scale.rate_weight == 0 and cfg.init.search_range_weight == 0:
             return None
         if data.ranges is None:
             raise ValueError("a range weight > 0 needs the sequence's range meter (range.csv)")
@@ -101,8 +130,17 @@ class RangePrior:
         keep = np.isfinite(r) & (r > 0)
         order = np.argsort(t[keep], kind="stable")
         t, r = t[keep][order].astype(np.int64), r[keep][order].astype(np.float64)
-        s = cfg.scale
-        return cls(t, r, s.min_alpha, data.camera, cfg.gaussians.background)
+        seed_unit = None
+        if cfg.scale.rate_weight > 0:
+            first = np.searchsorted(t, int(data.frames_us[0]))
+            if cfg.gaussians.init_depth <= 0 or first == len(t):
+                raise ValueError(
+                    "scale.rate_weight > 0 needs gaussians.init_depth > 0 (the seeding's depth on the first "
+                    "camera's axis, which the meter's first reading sets in metres) and a range sample "
+                    f"at or after the first frame ({int(data.frames_us[0])} µs)"
+                )
+            seed_unit = float(r[first]) / cfg.gaussians.init_depth
+        return cls(t, r, cfg.scale.min_alpha, data.camera, cfg.gaussians.background, seed_unit)
 
     def samples(self, t_lo: int, t_hi: int, traj: Trajectory | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(t_us, metres)`` of the samples with ``t_lo <= t <= t_hi`` (and inside ``traj``'s knots)."""
@@ -110,6 +148,27 @@ class RangePrior:
             t_lo, t_hi = max(t_lo, int(traj.t_us[0])), min(t_hi, int(traj.t_us[-1]))
         keep = (self.t_us >= t_lo) & (self.t_us <= t_hi)
         return self.t_us[keep], self.ranges[keep]
+
+    def rate_samples(self, t_lo: int, t_hi: int, traj: Trajectory) -> tuple[np.ndarray, np.ndarray]:
+        """``(t_us, metres)`` of the consecutive samples whose pairs end between ``t_lo`` and ``t_hi`` µs:
+        those inside, and the one before them if ``traj`` reaches it (a chunk shorter than the meter's
+        period holds one sample at most)."""
+        first, last = int(traj.t_us[0]), int(traj.t_us[-1])
+        i0 = int(np.searchsorted(self.t_us, max(t_lo, first), "left"))
+        i1 = int(np.searchsorted(self.t_us, min(t_hi, last), "right"))
+        if 0 < i0 < i1 and self.t_us[i0 - 1] >= first:
+            i0 -= 1
+        return self.t_us[i0:i1], self.ranges[i0:i1]
+
+    def rate_penalty(self, traj: Trajectory, t_lo: int, t_hi: int) -> Tensor:
+        """``mean(h(q))`` of the closing-rate residuals (:func:`closing_residuals`) of the pairs ending
+        between ``t_lo`` and ``t_hi`` µs, at the seeding's unit; 0 when there is none."""
+        t, metres = self.rate_samples(t_lo, t_hi, traj)
+        if len(t) < 2 or self.seed_unit is None:
+            return torch.zeros(())
+        poses = traj.pose_at(t)
+        q = closing_residuals(poses, poses.detach()[:, :3, 2], metres, self.seed_unit)
+        return huber(q).mean().float()
 
     def unit(self, gaussians: Gaussians, traj: Trajectory) -> float | None:
         """Metres per map unit now: the median ``r / D̄`` over the covered samples the trajectory has
