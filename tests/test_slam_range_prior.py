@@ -4,6 +4,7 @@ truth is known."""
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -62,6 +63,22 @@ def state_with_meter(synth, *sets: str) -> SlamState:
     )  # fmt: skip
     apply_scale(state, 1 / UNIT)
     return state
+
+
+@torch.no_grad()
+def knot_central_differences(traj: Trajectory, knot: int, f: Callable[[], float], eps: float) -> torch.Tensor:
+    """(6,) central differences of ``f`` along each coordinate of ``knot``'s increment."""
+    numeric = torch.zeros(6, dtype=torch.float64)
+    base = traj.delta[knot].clone()
+    for i in range(6):
+        values = []
+        for sign in (1.0, -1.0):
+            traj.delta[knot] = base
+            traj.delta[knot, i] += sign * eps
+            values.append(f())
+        numeric[i] = (values[0] - values[1]) / (2 * eps)
+    traj.delta[knot] = base
+    return numeric
 
 
 def test_no_prior_without_weight_and_a_clear_error_without_a_meter(synth):
@@ -193,18 +210,7 @@ def test_closing_rate_gradient_matches_autograd_and_finite_differences(synth):
     def penalty() -> float:
         return float(huber(closing_residuals(traj.pose_at(t), axes, metres, UNIT)).mean())
 
-    numeric = torch.zeros(6, dtype=torch.float64)
-    eps = 1e-4
-    with torch.no_grad():
-        base = traj.delta[3].clone()
-        for i in range(6):
-            values = []
-            for sign in (1.0, -1.0):
-                traj.delta[3] = base
-                traj.delta[3, i] += sign * eps
-                values.append(penalty())
-            numeric[i] = (values[0] - values[1]) / (2 * eps)
-        traj.delta[3] = base
+    numeric = knot_central_differences(traj, 3, penalty, 1e-4)
     assert float(analytic.norm()) > 1e-4
     assert torch.allclose(analytic, numeric, rtol=0.02, atol=0.01 * float(numeric.norm())), (
         analytic,
@@ -258,18 +264,9 @@ def test_penalty_gradient_matches_finite_differences(synth):
     # The poses only: the map is the events' to shape.
     assert all(p.grad is None or not bool(p.grad.any()) for p in state.gaussians.params.values())
     analytic = traj.delta.grad[3].double().clone()
-    numeric = torch.zeros(6, dtype=torch.float64)
-    eps = 1e-3
-    with torch.no_grad():
-        base = traj.delta[3].clone()
-        for i in range(6):
-            values = []
-            for sign in (1.0, -1.0):
-                traj.delta[3] = base
-                traj.delta[3, i] += sign * eps
-                values.append(float(prior.penalty(state.gaussians, traj, lo, hi, UNIT * 1.05)))
-            numeric[i] = (values[0] - values[1]) / (2 * eps)
-        traj.delta[3] = base
+    numeric = knot_central_differences(
+        traj, 3, lambda: float(prior.penalty(state.gaussians, traj, lo, hi, UNIT * 1.05)), 1e-3
+    )
     assert float(analytic.norm()) > 1e-3
     assert torch.allclose(analytic, numeric, rtol=0.05, atol=0.02 * float(numeric.norm())), (
         analytic,
