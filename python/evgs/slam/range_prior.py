@@ -23,14 +23,14 @@ orbit from an approach.
 ``scale.rate_weight`` adds a second, map-free term: between consecutive samples the camera's advance
 along its optical axis, in metres, equals the decrease of the range, ``q = (u₀·aᵢ·(Cᵢ₊₁ − Cᵢ) − (rᵢ −
 rᵢ₊₁)) / rᵢ₊₁`` — exact for a flat surface facing the camera, as the target of an approach or the ground
-of a descent is, and a small error where the ray sweeps relief. Two choices make it independent of the
-map's depth on the principal ray (too rough to steer poses by, §9; empty in the dark, where the centre
-of a uniform face fires no events):
+of a descent is, and a small error where the ray sweeps relief. It is independent of the map's depth on
+the principal ray (too rough to steer poses by, docs/ablations.md §9; empty in the dark, where the
+centre of a uniform face fires no events):
 - its unit ``u₀`` is fixed once, by the seeding: the map is seeded around ``gaussians.init_depth`` on the
   first camera's axis, so the meter's first reading is that depth in metres. The meter thereby sets the
   run's gauge from the start, and the map, shaped by the events, follows the trajectory;
 - the axis ``aᵢ`` is held where the pose has it (no gradient): the meter measures how far the camera
-  advanced, not where it points, and a tracker free to turn the axis would trade rotation for it.
+  advanced, not where it points.
 In the dark, where the looming of the few edges that fire hardly tells the tracker how fast the camera
 closes in, it does (docs/ablations.md §28).
 """
