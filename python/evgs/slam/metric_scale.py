@@ -33,7 +33,7 @@ from torch import Tensor
 
 from evgs.config import ScaleConfig
 from evgs.slam.gaussians import Gaussians, quat_to_rotmat
-from evgs.slam.range_prior import axial_advance
+from evgs.slam.range_prior import axial_advance, valid_samples
 from evgs.slam.state import SlamState
 from evgs.slam.trajectory import Trajectory
 
@@ -83,13 +83,14 @@ def first_surface(gaussians: Gaussians, T_wc: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def samples_inside(traj: Trajectory, t_us: np.ndarray, ranges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The valid samples (finite, positive) inside the run's time span, in time order; an error if none."""
-    keep = np.isfinite(ranges) & (ranges > 0) & (t_us >= int(traj.t_us[0])) & (t_us <= int(traj.t_us[-1]))
-    if not keep.any():
-        lo, hi = int(traj.t_us[0]), int(traj.t_us[-1])
+    """The valid samples (:func:`valid_samples`) inside the run's time span, in time order; an error if
+    none."""
+    t_us, ranges = valid_samples(t_us, ranges)
+    lo, hi = int(traj.t_us[0]), int(traj.t_us[-1])
+    inside = (t_us >= lo) & (t_us <= hi)
+    if not inside.any():
         raise ValueError(f"scale: no range sample lies inside the run's time span [{lo}, {hi}] µs")
-    order = np.argsort(t_us[keep], kind="stable")
-    return t_us[keep][order], ranges[keep][order]
+    return t_us[inside], ranges[inside]
 
 
 @dataclass(frozen=True)

@@ -69,19 +69,13 @@ def principal_depth(
     return alpha, depth / alpha.clamp(min=1e-6)
 
 
-@torch.no_grad()
-def covered_ratios(
-    gaussians: Gaussians, traj: Trajectory, t_us: np.ndarray, metres: np.ndarray, camera: Camera,
-    background: float, min_alpha: float,
-) -> tuple[np.ndarray, int]:  # fmt: skip
-    """``range / D̄`` at the samples inside the trajectory's time span whose principal ray the map covers,
-    and how many samples lay inside."""
-    inside = (t_us >= int(traj.t_us[0])) & (t_us <= int(traj.t_us[-1]))
-    if not inside.any():
-        return np.zeros(0), 0
-    alpha, depth = principal_depth(gaussians, traj.viewmats_at(t_us[inside]), camera, background)
-    covered = (alpha >= min_alpha).numpy()
-    return metres[inside][covered] / depth.double().numpy()[covered], int(inside.sum())
+def valid_samples(t_us: np.ndarray, metres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(t_us, metres)`` of the samples that are ranges (finite, positive), in time order: a meter
+    without a return (NaN) or reading 0 says nothing about the distance."""
+    t, r = np.asarray(t_us), np.asarray(metres)
+    keep = np.isfinite(r) & (r > 0)
+    order = np.argsort(t[keep], kind="stable")
+    return t[keep][order].astype(np.int64), r[keep][order].astype(np.float64)
 
 
 def axial_advance(poses: Tensor, axes: Tensor) -> Tensor:
@@ -126,10 +120,7 @@ class RangePrior:
             return None
         if data.ranges is None:
             raise ValueError("a range weight > 0 needs the sequence's range meter (range.csv)")
-        t, r = (np.asarray(a) for a in data.ranges)
-        keep = np.isfinite(r) & (r > 0)
-        order = np.argsort(t[keep], kind="stable")
-        t, r = t[keep][order].astype(np.int64), r[keep][order].astype(np.float64)
+        t, r = valid_samples(*data.ranges)
         seed_unit = None
         if cfg.scale.rate_weight > 0:
             first = np.searchsorted(t, int(data.frames_us[0]))
@@ -170,12 +161,16 @@ class RangePrior:
         q = closing_residuals(poses, poses.detach()[:, :3, 2], metres, self.seed_unit)
         return huber(q).mean().float()
 
+    @torch.no_grad()
     def unit(self, gaussians: Gaussians, traj: Trajectory) -> float | None:
         """Metres per map unit now: the median ``r / D̄`` over the covered samples the trajectory has
         reached (None if none is)."""
-        ratios, _ = covered_ratios(
-            gaussians, traj, self.t_us, self.ranges, self.camera, self.background, self.min_alpha
-        )
+        t, metres = self.samples(int(traj.t_us[0]), int(traj.t_us[-1]))
+        if not len(t):
+            return None
+        alpha, depth = principal_depth(gaussians, traj.viewmats_at(t), self.camera, self.background)
+        covered = (alpha >= self.min_alpha).numpy()
+        ratios = metres[covered] / depth.double().numpy()[covered]
         return float(np.median(ratios)) if len(ratios) else None
 
     def residuals(self, gaussians: Gaussians, viewmats: Tensor, metres: np.ndarray, unit: float) -> Tensor:
