@@ -16,6 +16,7 @@ from evgs.slam.loss import (
     linlog,
     predicted_events,
     ssim,
+    total_variation,
     valid_mask,
 )
 from skimage.metrics import structural_similarity
@@ -99,6 +100,20 @@ def test_known_brightness_step_l1_and_mse():
     terms = event_loss(events, start, end, dataclasses.replace(c, lambda_ssim=lam))
     s = ssim(start, end).mean()
     assert terms.total.item() == pytest.approx((1 - lam) * half + lam * (1 - s.item()), rel=1e-12)
+
+
+def test_total_variation_known_values_and_preference_for_filled_faces():
+    img = torch.zeros((1, 10, 10), dtype=torch.float64)
+    img[0, :, 5:] = 0.4  # one vertical edge of height 0.4 on every row
+    assert total_variation(img).item() == pytest.approx(0.4 * 10 / (10 * 9), rel=1e-12)
+    # A face lit only along its outline (what the events constrain) varies more than the filled face:
+    # the prior fills uniform faces whose inside fires no events.
+    filled = torch.zeros((1, 20, 20), dtype=torch.float64)
+    filled[0, 5:15, 5:15] = 0.5
+    ring = filled.clone()
+    ring[0, 7:13, 7:13] = 0.0
+    assert total_variation(filled) < total_variation(ring)
+    assert total_variation(torch.full((2, 8, 8), 0.3)).item() == 0.0
 
 
 def test_a_shifted_edge_is_penalised_more_the_further_it_moves():

@@ -231,3 +231,27 @@ def test_start_frame_counts_in_the_data_sets_numbering(synth):
     np.testing.assert_array_equal(sub.frames_us, whole.frames_us)
     with pytest.raises(ValueError, match="before the imported range"):
         EventData.from_sequence(imported, dataclasses.replace(data_cfg, start_frame=1, num_frames=2))
+
+
+def test_total_variation_enters_the_global_ba_only(synth):
+    """``global_ba.tv_weight`` adds ``w · TV(renders)`` to the global BA's loss, not to a local BA's."""
+    from evgs.slam.loss import total_variation
+    from evgs.slam.optimize import loss_step
+    from evgs.slam.stages import global_ba
+
+    sets = ("global_ba.num_opti_steps_final=1", "mapping.num_opti_steps_for_BA=1", "economy.coarse_factor=1")
+    losses = {}
+    for w in (0.0, 0.5):
+        cfg = config(*sets, f"global_ba.tv_weight={w}")
+        losses[w] = (
+            global_ba(gt_state(synth, cfg, 5), final=True).loss,
+            map_window(gt_state(synth, cfg, 5), 3).loss,
+        )
+    assert losses[0.5][1] == losses[0.0][1]
+    assert losses[0.5][0] > losses[0.0][0]
+    # The difference is the weighted TV of the first iteration's renders (the same windows: the same seed).
+    state = gt_state(synth, config(*sets), 5)
+    spec = StageSpec("final", 4, 1, state.data.span(0, 4), 1, 0, [], [], True, tv_weight=0.5)
+    step = loss_step(state, spec, state.data.windows(state.data.sampler(spec.span, 0), 1, 1), 1)
+    tv = total_variation(step.out.color[..., 0]).item()
+    assert step.total.item() == pytest.approx(step.terms.total.item() + 0.5 * tv, rel=1e-6)

@@ -98,6 +98,7 @@ class GlobalBAConfig:
     num_opti_steps: int
     num_opti_steps_final: int
     lr_boost: float
+    tv_weight: float
 
 
 @dataclass(frozen=True)

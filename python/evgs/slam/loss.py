@@ -126,6 +126,13 @@ def pointwise_error(diff: Tensor, kind: str) -> Tensor:
     return diff.abs() if kind == "l1" else diff * diff
 
 
+def total_variation(img: Tensor) -> Tensor:
+    """Mean anisotropic total variation ``|∂x I| + |∂y I|`` of (B, H, W) images."""
+    dx = (img[..., :, 1:] - img[..., :, :-1]).abs().mean()
+    dy = (img[..., 1:, :] - img[..., :-1, :]).abs().mean()
+    return dx + dy
+
+
 @dataclass(frozen=True)
 class LossTerms:
     total: Tensor

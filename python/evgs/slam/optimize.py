@@ -25,7 +25,7 @@ from evgs.data.sequence import Camera
 from evgs.render import RenderResult, render
 from evgs.slam.gaussians import make_optimizer
 from evgs.slam.guards import blocker_mask, clamp_colors_
-from evgs.slam.loss import LossTerms, event_loss, valid_mask
+from evgs.slam.loss import LossTerms, event_loss, total_variation, valid_mask
 from evgs.slam.state import SlamState, StageRecord
 from evgs.slam.strategy import DefaultStrategy, reset_opacity
 from evgs.slam.windows import Windows, scaled_camera
@@ -45,6 +45,7 @@ class StageSpec:
     masked: bool = False  # tracking's border / low-alpha mask
     anchored: bool = False  # brightness anchor term
     lr_boost: float = 1.0  # every Adam rate starts this many times higher, decaying to 1× at the end
+    tv_weight: float = 0.0  # weight of the renders' total variation (a prior on the map's appearance)
     # False: a fixed schedule, no densification, pruning or early switches, so the result is a smooth
     # function of the fixed knots (the motion search compares refits of nearby motions)
     adaptive: bool = True
@@ -129,6 +130,8 @@ def loss_step(
         mask = valid_mask(out.alpha[:b], out.alpha[b:], t.mask_border // factor, t.mask_alpha)
     terms = event_loss(win.frames, gray[:b], gray[b:], cfg.loss, mask)
     total = terms.total
+    if spec.tv_weight > 0:
+        total = total + spec.tv_weight * total_variation(gray)
     if spec.anchored:
         total = total + state.anchor.penalty(out.color, out.alpha)
     total = total + range_penalty(state, spec.span, unit, cfg.scale.range_weight, cfg.scale.rate_weight)
