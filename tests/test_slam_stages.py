@@ -14,9 +14,10 @@ from evgs.config import load_config  # noqa: E402
 from evgs.slam.gaussians import PARAM_NAMES, Gaussians  # noqa: E402
 from evgs.slam.guards import BrightnessAnchor  # noqa: E402
 from evgs.slam.lie import se3_exp, se3_inverse, se3_log  # noqa: E402
-from evgs.slam.optimize import Convergence, StageSpec, lr_boost, set_lr_boost  # noqa: E402
+from evgs.slam.loss import total_variation  # noqa: E402
+from evgs.slam.optimize import Convergence, StageSpec, loss_step, lr_boost, set_lr_boost  # noqa: E402
 from evgs.slam.pipeline import initial_gaussians, seeding_weights  # noqa: E402
-from evgs.slam.stages import map_window, track  # noqa: E402
+from evgs.slam.stages import global_ba, map_window, track  # noqa: E402
 from evgs.slam.state import SlamState  # noqa: E402
 from evgs.slam.trajectory import Trajectory  # noqa: E402
 from evgs.slam.windows import EventData, scaled_camera  # noqa: E402
@@ -235,10 +236,6 @@ def test_start_frame_counts_in_the_data_sets_numbering(synth):
 
 def test_total_variation_enters_the_global_ba_only(synth):
     """``global_ba.tv_weight`` adds ``w · TV(renders)`` to the global BA's loss, not to a local BA's."""
-    from evgs.slam.loss import total_variation
-    from evgs.slam.optimize import loss_step
-    from evgs.slam.stages import global_ba
-
     sets = ("global_ba.num_opti_steps_final=1", "mapping.num_opti_steps_for_BA=1", "economy.coarse_factor=1")
     losses = {}
     for w in (0.0, 0.5):
@@ -249,7 +246,7 @@ def test_total_variation_enters_the_global_ba_only(synth):
         )
     assert losses[0.5][1] == losses[0.0][1]
     assert losses[0.5][0] > losses[0.0][0]
-    # The difference is the weighted TV of the first iteration's renders (the same windows: the same seed).
+    # The step's loss is the event loss plus exactly w · TV of the gray renders.
     state = gt_state(synth, config(*sets), 5)
     spec = StageSpec("final", 4, 1, state.data.span(0, 4), 1, 0, [], [], True, tv_weight=0.5)
     step = loss_step(state, spec, state.data.windows(state.data.sampler(spec.span, 0), 1, 1), 1)

@@ -2,8 +2,9 @@
 
 One step: B windows from the Rust sampler, their event frames, the poses at each window's first and
 last event from the continuous trajectory, one batched render of the 2B views, ``Ê = L(Î_end) −
-L(Î_start)``, the loss of eq. 8 (plus the brightness anchor), backward, Adam on the trainable pose
-increments and (when mapping) the Gaussians, then the guards and the densification schedule.
+L(Î_start)``, the loss of eq. 8 (plus the brightness anchor and, in global BAs, a total-variation prior
+on the renders), backward, Adam on the trainable pose increments and (when mapping) the Gaussians,
+then the guards and the densification schedule.
 
 Economy: early iterations may render at ``1/coarse_factor`` resolution, and a stage ends early once the
 mean loss of the last ``patience`` iterations improves on the block before by less than
