@@ -1,13 +1,17 @@
 """``evgs bench slam``: the extent and the aggregation on known inputs, the plan's checks, a crashed run as
-a failed row (with its own peak memory), and one real run of the ``tiny`` preset that ``--resume`` then
-skips."""
+a failed row (with its own peak memory), one real run of the ``tiny`` preset that ``--resume`` then
+skips, and a SIGTERM that stops the running child before the suite."""
 
 from __future__ import annotations
 
 import csv
 import json
 import math
+import os
+import signal
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -219,3 +223,23 @@ def test_tiny_suite_end_to_end_and_resume(tmp_path: Path, data_root: Path, monke
     assert float(resumed["wall_s"]) > first_wall
     assert resumed["ate_rmse"] == row["ate_rmse"]
     assert "resumed at chunk" in (run_dir / "log.txt").read_text()
+
+
+def test_sigterm_stops_the_running_child_before_the_suite(tmp_path: Path):
+    """A suite killed with SIGTERM must not leave its run going on the cores, orphaned."""
+    log = tmp_path / "child.log"
+    run = "import os, time; print(os.getpid(), flush=True); time.sleep(120)"
+    suite = (
+        "import sys\nfrom pathlib import Path\nfrom evgs.bench.slam import run_child\n"
+        f"run_child([sys.executable, '-c', {run!r}], Path(sys.argv[1]))\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", suite, str(log)], env=dict(os.environ))
+    deadline = time.monotonic() + 60
+    while not (log.exists() and log.read_text().strip()):
+        assert time.monotonic() < deadline and proc.poll() is None, "the child never started"
+        time.sleep(0.05)
+    child = int(log.read_text().split()[0])
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=60) == -signal.SIGTERM  # the suite still ends as SIGTERM ends it
+    with pytest.raises(ProcessLookupError):
+        os.kill(child, 0)  # stopped and reaped

@@ -132,25 +132,47 @@ def child_argv(spec: RunSpec, interrupted: Path | None = None) -> list[str]:
     return argv
 
 
+class _Terminated(Exception):
+    """SIGTERM reached the suite while a run was going."""
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise _Terminated
+
+
 def run_child(argv: list[str], log_path: Path, append: bool = False) -> ChildResult:
     """Run ``argv`` with its output in (or, ``append``, added to) ``log_path``; its peak RSS from
-    ``wait4`` (this child only)."""
+    ``wait4`` (this child only). A SIGTERM meanwhile stops the child first, then this process."""
     env = dict(os.environ)
     # The child imports the same evgs as this process, however this one found it.
     package_root = str(Path(evgs.__file__).resolve().parents[1])
     env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
     env["COLUMNS"] = "200"  # the log is a file: no wrapping of the run's messages at 80 columns
     log_path.parent.mkdir(parents=True, exist_ok=True)
-    with open(log_path, "ab" if append else "wb") as log:
-        t0 = time.perf_counter()
-        proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, env=env)
-        try:
-            _, status, usage = os.wait4(proc.pid, 0)
-        except KeyboardInterrupt:  # the child got the SIGINT too: let it write its checkpoint
-            proc.wait()
-            raise
-        proc.returncode = os.waitstatus_to_exitcode(status)
-        wall = time.perf_counter() - t0
+    previous = signal.signal(signal.SIGTERM, _raise_terminated) or signal.SIG_DFL  # None: set outside Python
+    try:
+        with open(log_path, "ab" if append else "wb") as log:
+            t0 = time.perf_counter()
+            proc = subprocess.Popen(
+                argv, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, env=env
+            )
+            try:
+                _, status, usage = os.wait4(proc.pid, 0)
+            except KeyboardInterrupt:  # the child got the SIGINT too: let it write its checkpoint
+                proc.wait()
+                raise
+            except _Terminated:
+                # A SIGTERM reaches this process only: without this the run would go on, orphaned,
+                # sharing the cores with whatever comes next. Its checkpoints are written atomically.
+                proc.terminate()
+                proc.wait()
+                signal.signal(signal.SIGTERM, previous)
+                signal.raise_signal(signal.SIGTERM)  # then as this process would have without the run
+                raise
+            proc.returncode = os.waitstatus_to_exitcode(status)
+            wall = time.perf_counter() - t0
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     return ChildResult(proc.returncode, wall, usage.ru_maxrss * 1024 / 2**30)  # ru_maxrss is in KiB
 
 
