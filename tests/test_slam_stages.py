@@ -220,6 +220,19 @@ def test_mapping_keeps_parameters_aligned_through_densification(synth):
     assert not torch.equal(knots[k + 1], torch.as_tensor(scene.poses[k + 1]))
 
 
+def test_mapping_without_poses_trains_the_map_only(synth):
+    """``mapping.train_poses = false``: the local BA leaves every knot where tracking put it."""
+    cfg = config("mapping.num_opti_steps_for_BA=4", "economy.coarse_factor=1", "mapping.train_poses=false")
+    k = 5
+    state = gt_state(synth, cfg, k + 2)
+    knots = state.traj.knots().detach().clone()
+    means = state.gaussians["means"].detach().clone()
+    record = map_window(state, k)
+    assert record.iterations == 4
+    assert torch.equal(state.traj.knots(), knots)
+    assert not torch.equal(state.gaussians["means"][: len(means)], means)
+
+
 def test_start_frame_counts_in_the_data_sets_numbering(synth):
     """``evgs import --frames A:B`` renumbers frames from 0 and records A as ``frame_offset``; the configs'
     ``start_frame`` (the paper's numbering) must still select the same frames."""

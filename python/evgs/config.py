@@ -90,6 +90,7 @@ class MappingConfig:
     max_new_gaussians: int
     new_gaussian_alpha: float
     new_gaussian_depth: float
+    train_poses: bool
 
 
 @dataclass(frozen=True)

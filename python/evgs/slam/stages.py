@@ -7,8 +7,9 @@ event loss cannot observe.
 - motion search (optional): the constant-velocity motion the initialization starts from;
 - initialization: chunks ``0..m-1``, knots ``1..m`` and the Gaussians jointly;
 - tracking of chunk ``k``: knot ``k+1`` appended by constant velocity, then only it moves;
-- mapping (local BA): the last ``mapping.window`` chunks, their knots and the Gaussians, after adding
-  Gaussians where the newest view is still uncovered (low alpha) but events fired;
+- mapping (local BA): the last ``mapping.window`` chunks, their knots (unless ``mapping.train_poses`` is
+  false) and the Gaussians, after adding Gaussians where the newest view is still uncovered (low alpha)
+  but events fired;
 - global BA: windows from all chunks so far, every knot but the first and the Gaussians.
 """
 
@@ -121,10 +122,11 @@ def map_window(state: SlamState, k: int, reporter: StageReporter | None = None) 
     cfg = state.cfg
     added = add_gaussians_from_newest_view(state, k)
     first = max(0, k + 1 - cfg.mapping.window)
+    posed = range(max(first, 1), k + 2) if cfg.mapping.train_poses else range(0)
     spec = StageSpec(
         "map", _seq_frame(state, k + 1), cfg.mapping.num_opti_steps_for_BA, state.data.span(first, k + 1),
-        cfg.data.training_batch_size, stage_seed(cfg.seed, "map", k), range(max(first, 1), k + 2),
-        range(first, k + 2), train_gaussians=True, anchored=True,
+        cfg.data.training_batch_size, stage_seed(cfg.seed, "map", k), posed, range(first, k + 2),
+        train_gaussians=True, anchored=True,
     )  # fmt: skip
     record = run_stage(state, spec, reporter)
     record.added = added
