@@ -93,12 +93,18 @@ def test_closing_rate_scale_fits_the_advance_and_says_how_much_it_explains():
     traj = Trajectory(t_us, poses)
     metres = TRUE_SCALE * (5.0 - 0.2 * np.arange(12))
     fit = closing_scale(traj, t_us, metres)
-    assert fit is not None and fit.samples == 12
+    assert fit is not None and fit.samples == 12 and fit.jumps == 0
     assert fit.scale == pytest.approx(TRUE_SCALE, rel=1e-9) and fit.explained == pytest.approx(1.0)
     # Relief the ray sweeps: explained less; a range that only follows the target's shape: nothing.
     rng = np.random.default_rng(0)
     bumpy = metres + rng.normal(0.0, 0.05, 12)
     assert 0.5 < closing_scale(traj, t_us, bumpy).explained < 0.999
+    # The ray crosses an edge onto a surface 0.4 m behind: that pair is left out, the fit unchanged.
+    stepped = metres.copy()
+    stepped[6:] += 0.4
+    fit = closing_scale(traj, t_us, stepped)
+    assert fit.jumps == 1 and fit.scale == pytest.approx(TRUE_SCALE, rel=1e-9)
+    assert fit.explained == pytest.approx(1.0)
     still = Trajectory(t_us, se3_exp(torch.zeros(12, 6, dtype=torch.float64)))
     assert closing_scale(still, t_us, metres) is None  # no advance: nothing to fit
     assert closing_scale(traj, t_us[:1], metres[:1]) is None

@@ -33,7 +33,7 @@ from torch import Tensor
 
 from evgs.config import ScaleConfig
 from evgs.slam.gaussians import Gaussians, quat_to_rotmat
-from evgs.slam.range_prior import axial_advance, valid_samples
+from evgs.slam.range_prior import axial_advance, meter_jumps, valid_samples
 from evgs.slam.state import SlamState
 from evgs.slam.trajectory import Trajectory
 
@@ -98,23 +98,25 @@ class ClosingFit:
     scale: float  # metres per map unit
     explained: float  # share of the decreases' energy the advances explain, 1 − Σ(Δr − s·adv)² / ΣΔr²
     samples: int
+    jumps: int  # pairs left out: the meter jumps across them (range_prior.meter_jumps)
 
 
 @torch.no_grad()
 def closing_scale(traj: Trajectory, t_us: np.ndarray, ranges: np.ndarray) -> ClosingFit | None:
     """Least-squares ``s`` of ``Δr ≈ s · advance`` over consecutive samples (time-ordered, inside the
-    trajectory): the meter's decrease against the camera's advance along its optical axis. None with
-    fewer than two samples or no advance."""
+    trajectory): the meter's decrease against the camera's advance along its optical axis, over the
+    pairs across which the meter does not jump. None with fewer than two samples or no advance."""
     if len(t_us) < 2:
         return None
     poses = traj.pose_at(t_us).double()
-    advance = axial_advance(poses, poses[:, :3, 2]).numpy()
-    decrease = ranges[:-1] - ranges[1:]
+    steady = ~meter_jumps(ranges)
+    advance = axial_advance(poses, poses[:, :3, 2]).numpy()[steady]
+    decrease = (ranges[:-1] - ranges[1:])[steady]
     if not (advance @ advance > 0 and decrease @ decrease > 0):
         return None
     s = float(advance @ decrease / (advance @ advance))
     explained = 1.0 - float(((decrease - s * advance) ** 2).sum() / (decrease @ decrease))
-    return ClosingFit(s, explained, len(t_us))
+    return ClosingFit(s, explained, len(t_us), int((~steady).sum()))
 
 
 def range_scale(state: SlamState, t_us: np.ndarray, ranges: np.ndarray, min_alpha: float) -> ScaleEstimate:
@@ -156,7 +158,9 @@ def estimate_scale(state: SlamState, cfg: ScaleConfig) -> ScaleEstimate | None:
     t_us, ranges = samples_inside(state.traj, *seq_ranges)
     fit = closing_scale(state.traj, t_us, ranges)
     if fit is not None and fit.scale > 0 and fit.explained >= cfg.closing_min_explained:
-        return ScaleEstimate(fit.scale, fit.samples, f"range, closing rate ({fit.explained:.1%} explained)")
+        jumps = f", {fit.jumps} jumps left out" if fit.jumps else ""
+        source = f"range, closing rate ({fit.explained:.1%} explained{jumps})"
+        return ScaleEstimate(fit.scale, fit.samples, source)
     return range_scale(state, t_us, ranges, cfg.min_alpha)
 
 

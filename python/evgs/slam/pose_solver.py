@@ -50,7 +50,7 @@ class Residuals:
     events: Tensor  # (V, B, h, w) ``Ê − E``
     alpha: Tensor  # (V, 2, B, h, w) rendered alpha at the window starts and ends
     ranges: Tensor | None  # (V, S) the range meter's relative errors (NaN = unused), None without samples
-    rates: Tensor | None  # (V, S − 1) the meter's closing-rate errors, None without a pair of samples
+    rates: Tensor | None  # (V, S − 1) the meter's closing-rate errors (NaN = a jump), None without pairs
 
 
 def residuals(
@@ -83,11 +83,12 @@ def residuals(
                 range_views = se3_inverse(torch.cat([traj.pose_at(t_r, trial) for trial in trials])).float()
                 q = prior.residuals(state.gaussians, range_views, np.tile(metres, len(deltas)), unit)
                 ranges = q.reshape(len(deltas), len(t_r))
-            t_r, metres = prior.rate_samples(t_lo, t_hi, traj)
-            if len(t_r) > 1 and cfg.scale.rate_weight:
+            t_r, metres, steady = prior.rate_samples(t_lo, t_hi, traj)
+            if steady.any() and cfg.scale.rate_weight:
                 poses = torch.stack([traj.pose_at(t_r, trial) for trial in trials])
                 # the axes of the increment itself (variant 0): the meter does not see where the camera points
                 rates = closing_residuals(poses, poses[0, :, :3, 2], metres, prior.seed_unit)
+                rates[:, ~torch.from_numpy(steady)] = float("nan")  # a jump: not used (meter_rows)
     b = len(win.starts)
     gray = out.color[..., 0].reshape(len(deltas), 2, b, *out.color.shape[1:3])
     alpha = out.alpha.reshape(len(deltas), 2, b, *out.alpha.shape[1:3])

@@ -30,7 +30,10 @@ centre of a uniform face fires no events):
   first camera's axis, so the meter's first reading is that depth in metres. The meter thereby sets the
   run's gauge from the start, and the map, shaped by the events, follows the trajectory;
 - the axis ``aᵢ`` is held where the pose has it (no gradient): the meter measures how far the camera
-  advanced, not where it points.
+  advanced, not where it points;
+- pairs across which the meter jumps (:func:`meter_jumps`: the ray crossed an edge onto a nearer or
+  farther surface) are left out: no advance explains them, and at the weights that hold an approach a
+  single one would outweigh the events (the orbit's first pairs: the search picked a retreat).
 In the dark, where the looming of the few edges that fire hardly tells the tracker how fast the camera
 closes in, it does (docs/ablations.md §28).
 """
@@ -38,6 +41,7 @@ closes in, it does (docs/ablations.md §28).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -51,6 +55,7 @@ from evgs.slam.trajectory import Trajectory
 from evgs.slam.windows import EventData
 
 HUBER = 0.05  # relative range error beyond which a sample counts linearly (an edge, a part not mapped)
+JUMP = 0.02  # a pair's range change this far (× range) from its neighbours' is the ray crossing an edge
 
 
 def principal_camera(camera: Camera) -> Camera:
@@ -76,6 +81,22 @@ def valid_samples(t_us: np.ndarray, metres: np.ndarray) -> tuple[np.ndarray, np.
     keep = np.isfinite(r) & (r > 0)
     order = np.argsort(t[keep], kind="stable")
     return t[keep][order].astype(np.int64), r[keep][order].astype(np.float64)
+
+
+def meter_jumps(metres: np.ndarray) -> np.ndarray:
+    """(S − 1,) bool: the pairs of consecutive samples ``metres`` (S,) across which the meter jumps.
+
+    The camera's advance changes smoothly from one pair to the next; where the ray crosses an edge (the
+    orbit's dish onto the bus behind it: +7 % in one sample) the range steps by a depth gap no motion
+    explains. A pair jumps when its decrease differs from the median decrease of the (up to) five pairs
+    centred on it by more than ``JUMP`` of the range; the closing rate leaves such pairs out."""
+    r = np.asarray(metres, dtype=np.float64)
+    dec = r[:-1] - r[1:]
+    if len(dec) < 2:
+        return np.zeros(len(dec), dtype=bool)
+    padded = np.pad(dec, 2, constant_values=np.nan)
+    around = np.stack([padded[k : k + len(dec)] for k in range(5)])
+    return np.abs(dec - np.nanmedian(around, axis=0)) > JUMP * r[1:]
 
 
 def axial_advance(poses: Tensor, axes: Tensor) -> Tensor:
@@ -112,6 +133,11 @@ class RangePrior:
     background: float
     seed_unit: float | None = None  # metres per map unit set by the seeding (the closing rate's u₀)
 
+    @cached_property
+    def jumps(self) -> np.ndarray:
+        """(S − 1,) bool: the pairs the closing rate leaves out (:func:`meter_jumps`)."""
+        return meter_jumps(self.ranges)
+
     @classmethod
     def for_run(cls, cfg: Config, data: EventData) -> RangePrior | None:
         """The prior of a run on ``data`` (None when ``scale.range_weight``, ``scale.rate_weight`` and
@@ -140,26 +166,30 @@ class RangePrior:
         keep = (self.t_us >= t_lo) & (self.t_us <= t_hi)
         return self.t_us[keep], self.ranges[keep]
 
-    def rate_samples(self, t_lo: int, t_hi: int, traj: Trajectory) -> tuple[np.ndarray, np.ndarray]:
-        """``(t_us, metres)`` of the consecutive samples whose pairs end between ``t_lo`` and ``t_hi`` µs:
-        those inside, and the one before them if ``traj`` reaches it (a chunk shorter than the meter's
-        period holds one sample at most)."""
+    def rate_samples(
+        self, t_lo: int, t_hi: int, traj: Trajectory
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+        """``(t_us, metres, steady)`` of the consecutive samples whose pairs end between ``t_lo`` and
+        ``t_hi`` µs: those inside, and the one before them if ``traj`` reaches it (a chunk shorter than
+        the meter's period holds one sample at most); ``steady`` (S − 1,) marks the pairs across which
+        the meter does not jump (:attr:`jumps`)."""
         first, last = int(traj.t_us[0]), int(traj.t_us[-1])
         i0 = int(np.searchsorted(self.t_us, max(t_lo, first), "left"))
         i1 = int(np.searchsorted(self.t_us, min(t_hi, last), "right"))
         if 0 < i0 < i1 and self.t_us[i0 - 1] >= first:
             i0 -= 1
-        return self.t_us[i0:i1], self.ranges[i0:i1]
+        return self.t_us[i0:i1], self.ranges[i0:i1], ~self.jumps[i0 : max(i0, i1 - 1)]
 
     def rate_penalty(self, traj: Trajectory, t_lo: int, t_hi: int) -> Tensor:
         """``mean(h(q))`` of the closing-rate residuals (:func:`closing_residuals`) of the pairs ending
-        between ``t_lo`` and ``t_hi`` µs, at the seeding's unit; 0 when there is none."""
-        t, metres = self.rate_samples(t_lo, t_hi, traj)
-        if len(t) < 2 or self.seed_unit is None:
+        between ``t_lo`` and ``t_hi`` µs across which the meter does not jump, at the seeding's unit; 0
+        when there is none."""
+        t, metres, steady = self.rate_samples(t_lo, t_hi, traj)
+        if not steady.any() or self.seed_unit is None:
             return torch.zeros(())
         poses = traj.pose_at(t)
         q = closing_residuals(poses, poses.detach()[:, :3, 2], metres, self.seed_unit)
-        return huber(q).mean().float()
+        return huber(q[..., torch.from_numpy(steady)]).mean().float()
 
     @torch.no_grad()
     def unit(self, gaussians: Gaussians, traj: Trajectory) -> float | None:

@@ -106,6 +106,8 @@ def pipeline_metrics(state: SlamState) -> dict:
         "pruned_blockers": sum(r.pruned_blockers for r in h),
         "added_gaussians": sum(r.added for r in h),
         "undistort_dropped_events": state.data.dropped,
+        # consecutive range samples the closing rate leaves out: the meter's ray crossed an edge
+        "range_meter_jumps": int(state.range_prior.jumps.sum()) if state.range_prior is not None else 0,
         "final_loss": h[-1].loss if h else float("nan"),
         "stages": [asdict(r) for r in h],
     } | state.metric
