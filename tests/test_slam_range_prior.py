@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -27,6 +28,7 @@ from evgs.slam.range_prior import (  # noqa: E402
     meter_jumps,
     principal_camera,
 )
+from evgs.slam.run_dir import range_meter_jumps  # noqa: E402
 from evgs.slam.stages import track  # noqa: E402
 from evgs.slam.state import SlamState  # noqa: E402
 from evgs.slam.trajectory import Trajectory  # noqa: E402
@@ -181,6 +183,11 @@ def test_meter_jumps_are_steps_no_smooth_advance_makes():
     spike = 8.0 - 0.1 * np.arange(9)
     spike[4] -= 0.5
     assert np.flatnonzero(meter_jumps(spike)).tolist() == [3, 4]
+    # A run's metrics count them over the meter's valid samples (a miss, NaN, is no sample).
+    t = np.arange(len(orbit) + 1, dtype=np.int64) * 100_000
+    with_miss = np.insert(orbit, 3, np.nan)
+    assert range_meter_jumps(SimpleNamespace(data=SimpleNamespace(ranges=(t, with_miss)))) == 1
+    assert range_meter_jumps(SimpleNamespace(data=SimpleNamespace(ranges=None))) == 0
     # One pair has nothing to compare with; of two that disagree, neither can be trusted.
     assert meter_jumps(np.array([5.0, 6.0])).tolist() == [False]
     assert meter_jumps(np.array([5.0, 5.0, 6.0])).tolist() == [True, True]

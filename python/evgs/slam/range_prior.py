@@ -55,7 +55,7 @@ from evgs.slam.trajectory import Trajectory
 from evgs.slam.windows import EventData
 
 HUBER = 0.05  # relative range error beyond which a sample counts linearly (an edge, a part not mapped)
-JUMP = 0.02  # a pair's range change this far (× range) from its neighbours' is the ray crossing an edge
+JUMP = 0.02  # a pair's range change this far (× range) from the median around it: the ray crossed an edge
 
 
 def principal_camera(camera: Camera) -> Camera:

@@ -22,6 +22,7 @@ from evgs.eval.run import evaluate_run, read_run_config, resolve_sequence
 from evgs.io_util import atomic_path
 from evgs.slam import checkpoint
 from evgs.slam.gaussians import save_ply
+from evgs.slam.range_prior import meter_jumps, valid_samples
 from evgs.slam.state import SlamState
 
 
@@ -94,6 +95,13 @@ def trajectory_error(root: Path) -> dict:
     return {k: summary[k] for k in keys}
 
 
+def range_meter_jumps(state: SlamState) -> int:
+    """Pairs of consecutive range samples the closing rate leaves out (the meter's ray crossed an edge)."""
+    if state.data.ranges is None:
+        return 0
+    return int(meter_jumps(valid_samples(*state.data.ranges)[1]).sum())
+
+
 def pipeline_metrics(state: SlamState) -> dict:
     h = state.history
     return {
@@ -106,8 +114,7 @@ def pipeline_metrics(state: SlamState) -> dict:
         "pruned_blockers": sum(r.pruned_blockers for r in h),
         "added_gaussians": sum(r.added for r in h),
         "undistort_dropped_events": state.data.dropped,
-        # consecutive range samples the closing rate leaves out: the meter's ray crossed an edge
-        "range_meter_jumps": int(state.range_prior.jumps.sum()) if state.range_prior is not None else 0,
+        "range_meter_jumps": range_meter_jumps(state),
         "final_loss": h[-1].loss if h else float("nan"),
         "stages": [asdict(r) for r in h],
     } | state.metric
