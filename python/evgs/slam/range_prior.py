@@ -168,7 +168,7 @@ class RangePrior:
 
     def rate_samples(
         self, t_lo: int, t_hi: int, traj: Trajectory
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(t_us, metres, steady)`` of the consecutive samples whose pairs end between ``t_lo`` and
         ``t_hi`` µs: those inside, and the one before them if ``traj`` reaches it (a chunk shorter than
         the meter's period holds one sample at most); ``steady`` (S − 1,) marks the pairs across which
