@@ -180,6 +180,9 @@ def test_range_checks_name_the_keys():
     for sets in (["tracking.velocity_prior=-1"], ["tracking.solver=adam", "tracking.velocity_prior=1"]):
         with pytest.raises(ConfigError, match="tracking.velocity_prior must be >= 0, and > 0 only with"):
             load_config(overrides=sets)
+    for floor in ("-0.1", "1.5"):
+        with pytest.raises(ConfigError, match=r"tracking.velocity_prior_floor must be in \[0, 1\]"):
+            load_config(overrides=[f"tracking.velocity_prior_floor={floor}"])
 
 
 def test_command_line_arguments():

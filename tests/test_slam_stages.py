@@ -11,12 +11,14 @@ import torch
 pytest.importorskip("evgs.render")
 
 from evgs.config import load_config  # noqa: E402
+from evgs.slam import pose_solver  # noqa: E402
 from evgs.slam.gaussians import PARAM_NAMES, Gaussians  # noqa: E402
 from evgs.slam.guards import BrightnessAnchor  # noqa: E402
 from evgs.slam.lie import se3_exp, se3_inverse, se3_log  # noqa: E402
 from evgs.slam.loss import total_variation  # noqa: E402
 from evgs.slam.optimize import Convergence, StageSpec, loss_step, lr_boost, set_lr_boost  # noqa: E402
 from evgs.slam.pipeline import initial_gaussians, seeding_weights  # noqa: E402
+from evgs.slam.pose_solver import prior_curvature  # noqa: E402
 from evgs.slam.stages import global_ba, map_window, track  # noqa: E402
 from evgs.slam.state import SlamState  # noqa: E402
 from evgs.slam.trajectory import Trajectory  # noqa: E402
@@ -192,6 +194,45 @@ def test_lm_velocity_prior_pulls_towards_the_prediction(synth):
     assert errors[0] < 0.5 * at_start
     assert errors[0] < errors[1] < 0.9 * at_start, (errors, at_start)
     assert errors[2] == pytest.approx(at_start, rel=0.01)
+
+
+def test_prior_curvature_floors_each_kind_separately():
+    """Translations and rotations have different units: each is floored by its own best-seen coordinate."""
+    diag = torch.tensor([1.0, 0.5, 0.01, 2.0, 0.4, 0.02], dtype=torch.float64)
+    assert torch.equal(prior_curvature(diag, 3.0, 0.0), torch.diag(3.0 * diag))
+    floored = prior_curvature(diag, 3.0, 0.25).diagonal()
+    assert floored.tolist() == pytest.approx([3.0, 1.5, 0.75, 6.0, 1.5, 1.5])
+    assert torch.equal(prior_curvature(diag, 0.0, 0.25), torch.zeros(6, 6, dtype=torch.float64))
+
+
+def test_lm_velocity_prior_floor_holds_the_weakly_seen_rotation(synth, monkeypatch):
+    """With the floor, a start off the truth along the rotation the events see least stays near the
+    constant-velocity prediction (the start), where without it LM corrects it; along the best-seen
+    rotation both correct it alike."""
+    _, scene = synth
+    k = 4
+    T_gt = torch.as_tensor(scene.poses[k + 1])
+    seen = []
+    spy = lambda d, w, f: seen.append(d) or prior_curvature(d, w, f)  # noqa: E731
+    monkeypatch.setattr(pose_solver, "prior_curvature", spy)
+
+    def corrected(axis: int, floor: float) -> float:
+        """Share of a 0.02 rad error about ``axis`` (3..5) that tracking removes."""
+        offset = torch.zeros(6, dtype=torch.float64)
+        offset[axis] = 0.02
+        cfg = config("tracking.solver=lm", "tracking.num_opti_steps=8", "economy.coarse_factor=1",
+                     "tracking.mask_alpha=0.8", "tracking.velocity_prior=1",
+                     f"tracking.velocity_prior_floor={floor}")  # fmt: skip
+        state = gt_state(synth, cfg, k + 1)
+        track(state, k, pose=T_gt @ se3_exp(offset))
+        return 1 - float(se3_log(se3_inverse(T_gt) @ state.traj.knots()[k + 1].detach())[axis]) / 0.02
+
+    corrected(3, 0.0)
+    rot = torch.stack(seen)[:, 3:].median(0).values
+    weak, strong = 3 + int(rot.argmin()), 3 + int(rot.argmax())
+    assert float(rot.min()) < 0.3 * float(rot.max()), rot  # the scene has a weakly seen rotation
+    assert corrected(weak, 0.0) > 0.3 and corrected(weak, 1.0) < 0.5 * corrected(weak, 0.0)
+    assert corrected(strong, 1.0) == pytest.approx(corrected(strong, 0.0), abs=0.1)
 
 
 def test_mapping_keeps_parameters_aligned_through_densification(synth):

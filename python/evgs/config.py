@@ -80,6 +80,7 @@ class TrackingConfig:
     lm_damping: float
     lm_tolerance: float
     velocity_prior: float
+    velocity_prior_floor: float
 
 
 @dataclass(frozen=True)
@@ -312,6 +313,10 @@ def _check_ranges(cfg: Config, source: str) -> None:
         )
     if cfg.tracking.velocity_prior < 0 or (cfg.tracking.velocity_prior > 0 and cfg.tracking.solver != "lm"):
         problems.append("tracking.velocity_prior must be >= 0, and > 0 only with tracking.solver = 'lm'")
+    if not 0 <= cfg.tracking.velocity_prior_floor <= 1:
+        problems.append(
+            "tracking.velocity_prior_floor must be in [0, 1] (a fraction of the best-seen coordinate)"
+        )
     if g.init_fill_gap < 0:
         problems.append("gaussians.init_fill_gap must be >= 0 (0 = off)")
     if not 0 <= cfg.loss.lambda_ssim <= 1:

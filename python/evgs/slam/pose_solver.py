@@ -13,14 +13,15 @@ batched render, no backward pass), ``J``, the damped normal equations ``(JᵀWJ 
 windows: accepted (λ shrinks) if the loss falls, rejected (λ grows) otherwise. Only the event term of
 eq. 8 is minimised: the SSIM term regularises the map's brightness, which tracking does not change.
 
-``tracking.velocity_prior`` = w adds ``w · δᵀ diag(H) δ`` for the increment ``δ`` from the
-constant-velocity prediction, ``H`` the data rows' own Gauss–Newton matrix: coordinates the data pin
-down move freely, those they barely see stay near constant velocity. Without it, tracking an orbit
-takes slightly too small a step each frame (the loss is shallow along the orbit) and the local BA bends
-the map to match, until the estimate turns at a third of the true rate. The prior holds the
-initialization's errors and a true change of rate just as firmly (the swirl's turn slowing down and
-reversing), so it is off by default and on in the orbit and descent configs, whose velocity is steady
-(docs/ablations.md §10–11, §17).
+``tracking.velocity_prior`` = w adds ``w · δᵀ D δ`` for the increment ``δ`` from the constant-velocity
+prediction, ``D`` the diagonal of the data rows' own Gauss–Newton matrix ``H``: the pull is as firm,
+relative to the data, along every coordinate. Without it, tracking an orbit takes slightly too small a
+step each frame (the loss is shallow along the orbit) and the local BA bends the map to match, until the
+estimate turns at a third of the true rate. The prior holds the initialization's errors and a true
+change of rate just as firmly (the swirl's turn slowing down and reversing), so it is off by default and
+on in the orbit, descent and docking_low configs, whose velocity is steady (docs/ablations.md §10–11,
+§17). ``tracking.velocity_prior_floor`` raises each of ``D``'s entries to at least that fraction of the
+largest translation's (rotation's) entry (:func:`prior_curvature`).
 """
 
 from __future__ import annotations
@@ -118,6 +119,24 @@ def meter_rows(
     return (jq * wq) @ jq.T, (jq * wq) @ qu[0], meter_cost(weight, q[0], used), used
 
 
+def prior_curvature(diag: Tensor, weight: float, floor: float) -> Tensor:
+    """(6, 6) curvature of the pull towards the constant-velocity prediction: ``weight`` × the data's
+    curvature ``diag`` (6,) per coordinate (v, ω), each raised to at least ``floor`` × the largest of its
+    kind. The events see a compact target's roll about the optical axis and the advance along it far less
+    than its turn and sideways motion: their image motion scales with the target's radius in the image,
+    not with the focal length (the orbit's first tracked frame: the advance's curvature 1/77 of the best
+    translation's, the roll's 1/9 of the best rotation's; docking_low 1/90 and 1/48). Held only as firmly
+    as the data see them, they wander frame to frame: on the orbit the roll's share of the turn scatters
+    by ±10° and drifts, and the gaze ends 10–13° off the orbit's centre (docs/ablations.md §34). The
+    floor holds them at constant velocity instead: that removes the scatter but not the slow drift, so no
+    config sets it (§34)."""
+    d = diag.clone()
+    if floor > 0:
+        for kind in (slice(0, 3), slice(3, 6)):
+            d[kind] = d[kind].clamp(min=floor * float(d[kind].max()))
+    return weight * torch.diag(d)
+
+
 def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None = None) -> StageRecord:
     """Optimise the single trainable knot of ``spec`` by Levenberg–Marquardt; rebases at the end."""
     cfg, data, traj = state.cfg, state.data, state.traj
@@ -161,7 +180,7 @@ def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None =
                 hess, grad, cost0 = hess + h, grad + g, cost0 + c
                 meters.append((weight, name, used))
         # The pull towards the constant-velocity prediction (delta = 0); zero when the prior is off.
-        prior_h = tc.velocity_prior * torch.diag(hess.diagonal())
+        prior_h = prior_curvature(hess.diagonal(), tc.velocity_prior, tc.velocity_prior_floor)
         hess, grad = hess + prior_h, grad + prior_h @ delta
         cost0 += float(delta @ prior_h @ delta) / rows
         step = -torch.linalg.solve(hess + lam * torch.diag(hess.diagonal()) + 1e-12 * torch.eye(6), grad)
