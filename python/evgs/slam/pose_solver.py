@@ -128,8 +128,9 @@ def prior_curvature(diag: Tensor, weight: float, floor: float) -> Tensor:
     translation's, the roll's 1/9 of the best rotation's; docking_low 1/90 and 1/48). Held only as firmly
     as the data see them, they wander frame to frame: on the orbit the roll's share of the turn scatters
     by ±10° and drifts, and the gaze ends 10–13° off the orbit's centre (docs/ablations.md §34). The
-    floor holds them at constant velocity instead: that removes the scatter but not the slow drift, so no
-    config sets it (§34)."""
+    floor holds them at constant velocity instead. That removes the scatter; the slow drift is the local
+    BAs', which move the knots with Adam (with ``mapping.train_poses = false`` too the orbit's ATE halves,
+    §34; no config sets it yet)."""
     d = diag.clone()
     if floor > 0:
         for kind in (slice(0, 3), slice(3, 6)):
