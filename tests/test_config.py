@@ -183,6 +183,8 @@ def test_range_checks_name_the_keys():
     for floor in ("-0.1", "1.5"):
         with pytest.raises(ConfigError, match=r"tracking.velocity_prior_floor must be in \[0, 1\]"):
             load_config(overrides=[f"tracking.velocity_prior_floor={floor}"])
+    with pytest.raises(ConfigError, match="tracking.velocity_prior_frames must be >= 0"):
+        load_config(overrides=["tracking.velocity_prior_frames=-1"])
 
 
 def test_command_line_arguments():

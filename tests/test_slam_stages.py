@@ -18,7 +18,7 @@ from evgs.slam.lie import se3_exp, se3_inverse, se3_log  # noqa: E402
 from evgs.slam.loss import total_variation  # noqa: E402
 from evgs.slam.optimize import Convergence, StageSpec, loss_step, lr_boost, set_lr_boost  # noqa: E402
 from evgs.slam.pipeline import initial_gaussians, seeding_weights  # noqa: E402
-from evgs.slam.pose_solver import prior_curvature  # noqa: E402
+from evgs.slam.pose_solver import prior_curvature, prior_weight  # noqa: E402
 from evgs.slam.stages import global_ba, map_window, track  # noqa: E402
 from evgs.slam.state import SlamState  # noqa: E402
 from evgs.slam.trajectory import Trajectory  # noqa: E402
@@ -194,6 +194,35 @@ def test_lm_velocity_prior_pulls_towards_the_prediction(synth):
     assert errors[0] < 0.5 * at_start
     assert errors[0] < errors[1] < 0.9 * at_start, (errors, at_start)
     assert errors[2] == pytest.approx(at_start, rel=0.01)
+
+
+def test_lm_velocity_prior_lets_go_after_its_frames(synth):
+    """``tracking.velocity_prior_frames``: an overwhelming prior holds the knot at its start while the
+    frame is within the first tracked ones, and past them LM tracks exactly as with the prior off."""
+    _, scene = synth
+    k = 4
+    T_gt = torch.as_tensor(scene.poses[k + 1])
+    start = T_gt @ se3_exp(torch.tensor([0.05, -0.04, 0.03, 0.02, -0.03, 0.02]).double())
+
+    def tracked(*sets: str) -> torch.Tensor:
+        cfg = config("tracking.solver=lm", "tracking.num_opti_steps=8", "economy.coarse_factor=1",
+                     "tracking.mask_alpha=0.8", *sets)  # fmt: skip
+        state = gt_state(synth, cfg, k + 1)
+        track(state, k, pose=start)
+        return state.traj.knots()[k + 1].detach()
+
+    n = k + 1 - config().init.num_frames  # the knot is the n-th tracked frame
+    assert n >= 2  # so that n − 1 frames is not 0 (the whole run)
+    free, held = tracked("tracking.velocity_prior=0"), tracked("tracking.velocity_prior=1e6")
+    at_start = pose_error(start, T_gt.numpy())[1]
+    assert pose_error(free, T_gt.numpy())[1] < 0.5 * at_start
+    assert pose_error(held, T_gt.numpy())[1] == pytest.approx(at_start, rel=0.01)
+    for frames, expected in ((n, held), (n - 1, free)):
+        limited = tracked("tracking.velocity_prior=1e6", f"tracking.velocity_prior_frames={frames}")
+        assert torch.equal(limited, expected), frames
+    tc = config("tracking.velocity_prior=2", "tracking.velocity_prior_frames=3").tracking
+    assert [prior_weight(tc, i) for i in (1, 3, 4)] == [2.0, 2.0, 0.0]
+    assert prior_weight(config("tracking.velocity_prior=2").tracking, 10**6) == 2.0
 
 
 def test_prior_curvature_floors_each_kind_separately():

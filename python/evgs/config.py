@@ -81,6 +81,7 @@ class TrackingConfig:
     lm_tolerance: float
     velocity_prior: float
     velocity_prior_floor: float
+    velocity_prior_frames: int
 
 
 @dataclass(frozen=True)
@@ -317,6 +318,8 @@ def _check_ranges(cfg: Config, source: str) -> None:
         problems.append(
             "tracking.velocity_prior_floor must be in [0, 1] (a fraction of the best-seen coordinate)"
         )
+    if cfg.tracking.velocity_prior_frames < 0:
+        problems.append("tracking.velocity_prior_frames must be >= 0 (0 = the whole run)")
     if g.init_fill_gap < 0:
         problems.append("gaussians.init_fill_gap must be >= 0 (0 = off)")
     if not 0 <= cfg.loss.lambda_ssim <= 1:

@@ -21,7 +21,8 @@ estimate turns at a third of the true rate. The prior holds the initialization's
 change of rate just as firmly (the swirl's turn slowing down and reversing), so it is off by default and
 on in the orbit, descent and docking_low configs, whose velocity is steady (docs/ablations.md §10–11,
 §17). ``tracking.velocity_prior_floor`` raises each of ``D``'s entries to at least that fraction of the
-largest translation's (rotation's) entry (:func:`prior_curvature`; the orbit configs, §34).
+largest translation's (rotation's) entry (:func:`prior_curvature`; the orbit configs, §34);
+``tracking.velocity_prior_frames`` limits the prior to the first tracked frames (:func:`prior_weight`).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from evgs.config import TrackingConfig
 from evgs.render import render
 from evgs.slam.lie import se3_exp, se3_inverse
 from evgs.slam.loss import event_mask, pointwise_error, predicted_events, valid_mask
@@ -138,11 +140,25 @@ def prior_curvature(diag: Tensor, weight: float, floor: float) -> Tensor:
     return weight * torch.diag(d)
 
 
+def prior_weight(tc: TrackingConfig, tracked: int) -> float:
+    """The velocity prior's weight on the ``tracked``-th frame after the initialization (1 = the first):
+    ``tracking.velocity_prior`` up to ``tracking.velocity_prior_frames`` (0 = every frame), then 0.
+
+    The initialization's map has seen a few chunks' baseline; on a narrow view a turn and the map's
+    relief trade off (bas-relief), so it cannot tell a slower turn from a deeper target and tracking on
+    it turns too slowly (the swirl: half the true rate, docs/ablations.md §14). Held at the
+    initialization's velocity while the local BAs give the map a wider baseline, tracking then follows a
+    changing rate on its own (the swirl slowing down and reversing, §35)."""
+    frames = tc.velocity_prior_frames
+    return tc.velocity_prior if frames == 0 or tracked <= frames else 0.0
+
+
 def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None = None) -> StageRecord:
     """Optimise the single trainable knot of ``spec`` by Levenberg–Marquardt; rebases at the end."""
     cfg, data, traj = state.cfg, state.data, state.traj
     tc, econ, kind, sc = cfg.tracking, cfg.economy, cfg.loss.event_loss, cfg.scale
     (knot,) = spec.trainable_knots
+    prior_w = prior_weight(tc, knot - state.num_init_chunks())
     sampler = data.sampler(spec.span, spec.seed)
     traj.set_trainable([knot])
     # Rotations move a pixel by f·ε; translations by f·ε/depth: matched at the scene's scale.
@@ -181,7 +197,7 @@ def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None =
                 hess, grad, cost0 = hess + h, grad + g, cost0 + c
                 meters.append((weight, name, used))
         # The pull towards the constant-velocity prediction (delta = 0); zero when the prior is off.
-        prior_h = prior_curvature(hess.diagonal(), tc.velocity_prior, tc.velocity_prior_floor)
+        prior_h = prior_curvature(hess.diagonal(), prior_w, tc.velocity_prior_floor)
         hess, grad = hess + prior_h, grad + prior_h @ delta
         cost0 += float(delta @ prior_h @ delta) / rows
         step = -torch.linalg.solve(hess + lam * torch.diag(hess.diagonal()) + 1e-12 * torch.eye(6), grad)
