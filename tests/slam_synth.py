@@ -9,16 +9,21 @@ stage's result can be checked against the truth.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+from evgs.config import load_config
 from evgs.data.sequence import Camera, Sequence, write_sequence
 from evgs.events.arrays import EventArray
 from evgs.geometry import invert_pose, make_pose
 from evgs.render import render
 from evgs.slam.gaussians import Gaussians
+from evgs.slam.pipeline import new_state
+from evgs.slam.state import SlamState
+from evgs.slam.windows import EventData
 
 CAMERA = Camera(80, 60, 70.0, 70.0, 40.0, 30.0)
 CONTRAST = 0.2
@@ -111,3 +116,20 @@ def make_sequence(root: Path, n_frames: int = 9, substeps: int = 12, seed: int =
         root, "synth", CAMERA, events, frames_us, poses_gt=(t_fine, T_fine), meta={"source": "test"}
     )
     return seq, Scene(g, frames_us, poses)
+
+
+def search_state(seq: Sequence, *sets: str) -> SlamState:
+    """A fresh run state on ``seq`` with the tiny config set up for the motion search's tests (4 init
+    chunks, the plain basis of hypotheses: the tilted one has its own test) and ``sets`` on top."""
+    base = [
+        "data.event_contrast=0.2",
+        "gaussians.bounding_size=1.0",
+        "gaussians.init_depth=2.2",
+        "gaussians.init_depth_spread=0.5",
+        "scale.source=none",
+        "init.num_frames=4",
+        "init.search_tilt=0",
+    ]
+    cfg = load_config("synthetic/tiny", [*base, *sets])
+    cfg = dataclasses.replace(cfg, seq=str(seq.root))
+    return new_state(cfg, EventData.from_sequence(seq, cfg.data))

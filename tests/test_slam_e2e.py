@@ -82,14 +82,17 @@ def test_estimate_beats_constant_pose_and_map_renders(full_run: Path, seq_dir: P
 
 
 class InterruptAt:
-    """A reporter that raises KeyboardInterrupt (as Ctrl-C would) at one iteration of one stage."""
+    """A reporter that raises KeyboardInterrupt (as Ctrl-C would) at one iteration of one stage, the
+    ``occurrence``-th time the run gets there (a branched start runs the same stage once per branch)."""
 
-    def __init__(self, stage: str, frame: int, it: int):
-        self.where = (stage, frame, it)
+    def __init__(self, stage: str, frame: int, it: int, occurrence: int = 1):
+        self.where, self.left = (stage, frame, it), occurrence
 
     def advance(self, state, spec, it, loss, events, seconds) -> None:
         if (spec.stage, spec.frame, it) == self.where:
-            raise KeyboardInterrupt
+            self.left -= 1
+            if self.left == 0:
+                raise KeyboardInterrupt
 
     def stage_end(self, state, spec, record) -> None:
         pass
@@ -140,3 +143,24 @@ def test_range_scale_without_a_range_meter_is_refused_before_the_run(seq_dir, tm
     assert main([*args, "--set", "scale.source=none", "--set", "scale.range_weight=1"]) == 2
     assert "scale.range_weight > 0 needs range.csv" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # no run directory was started
+
+
+def test_branched_start_names_its_branches_and_resumes_from_before_them(seq_dir: Path, tmp_path: Path):
+    """``init.branches``: every branch's stages are in the log and its diagnostics carry its name; Ctrl-C
+    inside a branch resumes from before the search and ends bitwise where an uninterrupted run does."""
+    sets = (*CHEAP, "init.branches=2", "init.branch_frames=2", "output.diagnostics_every=10")
+    full = run_cli(seq_dir, tmp_path / "full", *sets)
+    log = (full / "log.txt").read_text()
+    assert "branch0/init" in log and "branch1/track" in log and "branch frame" in log
+    assert list((full / "diagnostics").glob("branch1_init_*.png"))
+    metrics = json.loads((full / "metrics.json").read_text())
+    assert metrics["frames"] == len(read_tum(full / "traj_est.txt")[0])
+    cfg = load_config(full / "config.toml")
+    run = RunDir.create(tmp_path / "runs", "synth", cfg)
+    state = new_state(cfg, EventData.from_sequence(Sequence.load(seq_dir), cfg.data))
+    m = cfg.init.num_frames
+    with pytest.raises(KeyboardInterrupt):  # the second branch's first tracked frame
+        run_slam(state, run, InterruptAt("track", m + 1, 2, occurrence=2))
+    assert main(["run", "--resume", str(run.root), "--quiet"]) == 0
+    assert (run.root / "traj_est.txt").read_bytes() == (full / "traj_est.txt").read_bytes()
+    assert (run.root / "gaussians.ply").read_bytes() == (full / "gaussians.ply").read_bytes()

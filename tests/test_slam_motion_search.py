@@ -10,7 +10,6 @@ import torch
 
 pytest.importorskip("evgs.render")
 
-from evgs.config import load_config  # noqa: E402
 from evgs.slam import motion_search  # noqa: E402
 from evgs.slam.lie import se3_inverse, se3_log  # noqa: E402
 from evgs.slam.motion_search import (  # noqa: E402
@@ -21,10 +20,8 @@ from evgs.slam.motion_search import (  # noqa: E402
     search_motion,
     veered,
 )
-from evgs.slam.pipeline import new_state  # noqa: E402
 from evgs.slam.stages import start_from_best_motion  # noqa: E402
-from evgs.slam.windows import EventData  # noqa: E402
-from slam_synth import make_sequence  # noqa: E402
+from slam_synth import make_sequence, search_state  # noqa: E402
 
 RATE, DEPTH = 0.01, 3.0
 
@@ -35,19 +32,7 @@ def synth(tmp_path_factory):
 
 
 def synth_state(synth, *sets: str):
-    seq, _ = synth
-    base = [
-        "data.event_contrast=0.2",
-        "gaussians.bounding_size=1.0",
-        "gaussians.init_depth=2.2",
-        "gaussians.init_depth_spread=0.5",
-        "scale.source=none",
-        "init.num_frames=4",
-        "init.search_tilt=0",  # the plain basis: the tilted one has its own test
-    ]
-    cfg = load_config("synthetic/tiny", [*base, *sets])
-    cfg = dataclasses.replace(cfg, seq=str(seq.root))
-    return new_state(cfg, EventData.from_sequence(seq, cfg.data))
+    return search_state(synth[0], *sets)
 
 
 def test_hypotheses_are_rigid_orbits_about_the_centre_or_translations():

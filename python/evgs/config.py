@@ -68,6 +68,8 @@ class InitConfig:
     search_veer: float
     search_smooth: bool
     search_range_weight: float
+    branches: int
+    branch_frames: int
 
 
 @dataclass(frozen=True)
@@ -312,6 +314,10 @@ def _check_ranges(cfg: Config, source: str) -> None:
             "search_holdout >= 0, search_sized >= 1, 1 <= search_starts <= 2 × search_sized (the sized "
             "orbits and translations), 0 <= search_tilt < 90 and 0 <= search_veer < 90"
         )
+    if cfg.init.branches < 1 or cfg.init.branch_frames < 0:
+        problems.append("init.branches must be >= 1 (1 = off) and init.branch_frames >= 0")
+    elif cfg.init.branches > 1 and not cfg.init.motion_search:
+        problems.append("init.branches > 1 needs init.motion_search = true (branches start from its best)")
     if cfg.tracking.velocity_prior < 0 or (cfg.tracking.velocity_prior > 0 and cfg.tracking.solver != "lm"):
         problems.append("tracking.velocity_prior must be >= 0, and > 0 only with tracking.solver = 'lm'")
     if not 0 <= cfg.tracking.velocity_prior_floor <= 1:

@@ -52,8 +52,14 @@ import torch
 from torch import Tensor
 
 from evgs.slam.lie import se3_exp
-from evgs.slam.loss import event_loss
-from evgs.slam.optimize import StageReporter, StageSpec, range_penalty, range_unit, render_windows, run_stage
+from evgs.slam.optimize import (
+    StageReporter,
+    StageSpec,
+    fixed_window_loss,
+    range_penalty,
+    range_unit,
+    run_stage,
+)
 from evgs.slam.state import SlamState, stage_seed
 from evgs.slam.trajectory import Trajectory
 
@@ -180,16 +186,13 @@ def score(state: SlamState, hyp: Hypothesis, reporter: StageReporter | None) -> 
         trial.traj = Trajectory(data.frames_us[: n + 1], hyp.knots(n + 1), cfg.trajectory.interpolation)
         spans.append(data.span_with_min(m, n))
     weight, rate_weight = cfg.init.search_range_weight, cfg.scale.rate_weight
-    means, unit = [], range_unit(trial, weight)
-    for span in spans:
-        sampler = data.sampler(span, stage_seed(cfg.seed, "search", 0))
-        losses = []
-        with torch.no_grad():
-            for _ in range(EVAL_WINDOWS):
-                win = data.windows(sampler, 1, 1)
-                gray = render_windows(trial, win, data.camera).color[..., 0]
-                losses.append(float(event_loss(win.frames, gray[:1], gray[1:], cfg.loss).total))
-            means.append(np.mean(losses) + float(range_penalty(trial, span, unit, weight, rate_weight)))
+    unit, seed = range_unit(trial, weight), stage_seed(cfg.seed, "search", 0)
+    with torch.no_grad():
+        means = [
+            fixed_window_loss(trial, span, seed, EVAL_WINDOWS)
+            + float(range_penalty(trial, span, unit, weight, rate_weight))
+            for span in spans
+        ]
     return float(np.mean(means))
 
 
@@ -238,10 +241,14 @@ def compass(
 
 @dataclasses.dataclass(frozen=True)
 class SearchResult:
-    best: Hypothesis
+    ranked: list[Hypothesis]  # every hypothesis scored, the best first
     score: float  # the best's
     tried: list[tuple[str, float]]  # every (name, score) in order
     steps: int  # map iterations spent on refits
+
+    @property
+    def best(self) -> Hypothesis:
+        return self.ranked[0]
 
 
 def search_motion(state: SlamState, reporter: StageReporter | None = None) -> SearchResult:
@@ -280,6 +287,6 @@ def search_motion(state: SlamState, reporter: StageReporter | None = None) -> Se
         for start in sorted(starts, key=trial)[: cfg.search_starts]:
             rate = float(start.twist[3:].norm()) or float(start.twist[:3].norm()) / depth
             compass(trial, start, 0.25 * rate, cfg.search_polls, poll_directions(depth))
-    best, best_score = trial.best()
+    ranked = sorted(trial.tried, key=lambda hs: hs[1])
     tried = [(h.name, s) for h, s in trial.tried]
-    return SearchResult(best, best_score, tried, cfg.search_steps * len(tried))
+    return SearchResult([h for h, _ in ranked], ranked[0][1], tried, cfg.search_steps * len(tried))

@@ -90,6 +90,21 @@ def render_windows(state: SlamState, win: Windows, camera: Camera) -> RenderResu
     )  # fmt: skip
 
 
+@torch.no_grad()
+def fixed_window_loss(state: SlamState, span: tuple[int, int], seed: int, windows: int) -> float:
+    """Mean loss (eq. 8) of ``state``'s map and trajectory on ``windows`` single windows of the event index
+    range ``span``, drawn by a sampler seeded with ``seed``: the same windows whatever the state, so that
+    states built on the same data (motion hypotheses, branches) compare on equal terms."""
+    data = state.data
+    sampler = data.sampler(span, seed)
+    losses = []
+    for _ in range(windows):
+        win = data.windows(sampler, 1, 1)
+        gray = render_windows(state, win, data.camera).color[..., 0]
+        losses.append(float(event_loss(win.frames, gray[:1], gray[1:], state.cfg.loss).total))
+    return float(np.mean(losses))
+
+
 def range_unit(state: SlamState, weight: float) -> float | None:
     """The range meter's metres per map unit at this point of the run (None without a meter, or when
     its term has weight 0 and is not needed)."""

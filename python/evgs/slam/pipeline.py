@@ -1,5 +1,6 @@
-"""The SLAM loop over a sequence: initialization, then per chunk tracking, local BA every
-``mapping.every`` frames and global BA every ``global_ba.every`` frames, and a final global BA.
+"""The SLAM loop over a sequence: the start (motion search, initialization, optionally in branches),
+then per chunk tracking, local BA every ``mapping.every`` frames and global BA every
+``global_ba.every`` frames, and a final global BA.
 
 The state is snapshotted at every frame boundary and written to ``checkpoints/`` every
 ``output.checkpoint_every`` frames; Ctrl-C (KeyboardInterrupt) writes the last boundary's snapshot, so
@@ -9,6 +10,7 @@ would.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
 import numpy as np
@@ -18,13 +20,14 @@ from torch import Tensor
 
 from evgs.config import Config, GaussiansConfig
 from evgs.slam import checkpoint
+from evgs.slam.branches import run_branches
 from evgs.slam.gaussians import Gaussians
 from evgs.slam.guards import BrightnessAnchor
 from evgs.slam.metric_scale import apply_scale, estimate_scale
 from evgs.slam.optimize import StageReporter
 from evgs.slam.range_prior import RangePrior
 from evgs.slam.run_dir import RunDir
-from evgs.slam.stages import global_ba, initialize, map_window, start_from_best_motion, track
+from evgs.slam.stages import global_ba, initialize, search, start_from, step_chunk
 from evgs.slam.state import SlamState, StageRecord
 from evgs.slam.trajectory import Trajectory, random_knots
 from evgs.slam.windows import EventData
@@ -117,6 +120,30 @@ def write_metric_scale(state: SlamState, run: RunDir, log: Callable[[str], None]
         log(message)
 
 
+def adopt(state: SlamState, other: SlamState) -> None:
+    """Make ``state`` (the caller's object) carry ``other``'s contents."""
+    for f in dataclasses.fields(state):
+        setattr(state, f.name, getattr(other, f.name))
+
+
+def start(state: SlamState, note: Callable[[StageRecord], None], reporter: StageReporter | None) -> None:
+    """The motion search (``init.motion_search``), then the initialization of its best motion — or of its
+    ``init.branches`` best, each carried on for ``init.branch_frames`` frames, the best branch kept."""
+    cfg = state.cfg
+    hyps = []
+    if cfg.init.motion_search:
+        found, record = search(state, reporter)
+        note(record)
+        hyps = found.ranked[: cfg.init.branches]
+    if len(hyps) > 1:
+        adopt(state, run_branches(state, hyps, note, reporter))
+        return
+    if hyps:
+        start_from(state, hyps[0])
+    note(initialize(state, reporter))
+    state.position.initialized, state.position.next_chunk = True, state.num_init_chunks()
+
+
 def run_slam(
     state: SlamState,
     run: RunDir,
@@ -124,7 +151,7 @@ def run_slam(
     log: Callable[[str], None] | None = None,
 ) -> SlamState:
     """Run (or continue, from ``state.position``) to the end; write the outputs into ``run``."""
-    cfg, pos, n_chunks = state.cfg, state.position, state.data.n_chunks
+    cfg, n_chunks = state.cfg, state.data.n_chunks
 
     def note(record: StageRecord) -> None:
         run.log(describe(record))
@@ -144,26 +171,15 @@ def run_slam(
             since_saved = 0
 
     try:
-        if not pos.initialized:
-            if cfg.init.motion_search:
-                note(start_from_best_motion(state, reporter))
-            note(initialize(state, reporter))
-            pos.initialized, pos.next_chunk = True, state.num_init_chunks()
+        if not state.position.initialized:
+            start(state, note, reporter)
             boundary(force=True)
-        while pos.next_chunk < n_chunks:
-            k = pos.next_chunk
-            note(track(state, k, reporter))
-            pos.since_mapping += 1
-            if pos.since_mapping >= cfg.mapping.every:
-                note(map_window(state, k, reporter))
-                pos.since_mapping = 0
-            if cfg.global_ba.every > 0 and (k + 1) % cfg.global_ba.every == 0 and k + 1 < n_chunks:
-                note(global_ba(state, final=False, reporter=reporter))
-            pos.next_chunk += 1
+        while state.position.next_chunk < n_chunks:
+            step_chunk(state, note, reporter)
             boundary()
-        if not pos.finished:
+        if not state.position.finished:
             note(global_ba(state, final=True, reporter=reporter))
-            pos.finished = True
+            state.position.finished = True
             boundary(force=True)
     except KeyboardInterrupt:
         checkpoint.save(run.checkpoint_path, last)

@@ -30,7 +30,8 @@ def write_diagnostics(
     res = render_windows(state, win, state.data.camera)
     b = len(win.starts)
     gray = res.color[..., 0]
-    path = out / f"{spec.stage}_{spec.frame:06d}_{iteration:05d}.png"
+    prefix = f"{state.branch}_" if state.branch else ""
+    path = out / f"{prefix}{spec.stage}_{spec.frame:06d}_{iteration:05d}.png"
     write_png(path, diagnostics_image(gray[:b], gray[b:], win.frames, state.cfg.loss))
     return path
 

@@ -16,11 +16,12 @@ event loss cannot observe.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import torch
 
 from evgs.render import render
-from evgs.slam.motion_search import search_motion
+from evgs.slam.motion_search import Hypothesis, SearchResult, search_motion
 from evgs.slam.optimize import StageReporter, StageSpec, run_stage
 from evgs.slam.pose_solver import lm_track
 from evgs.slam.state import SlamState, StageRecord, stage_seed
@@ -31,18 +32,30 @@ def _seq_frame(state: SlamState, knot: int) -> int:
     return state.cfg.data.start_frame + knot
 
 
-def start_from_best_motion(state: SlamState, reporter: StageReporter | None = None) -> StageRecord:
-    """Set the init knots to the best constant-velocity hypothesis (:mod:`evgs.slam.motion_search`)."""
+def search(state: SlamState, reporter: StageReporter | None = None) -> tuple[SearchResult, StageRecord]:
+    """The constant-velocity hypotheses ranked by :mod:`evgs.slam.motion_search`, recorded in the state's
+    history; the knots are left as they are."""
     t0 = time.perf_counter()
-    m = state.num_init_chunks()
     found = search_motion(state, reporter)
-    with torch.no_grad():
-        state.traj.base.copy_(found.best.knots(m + 1))
     record = StageRecord(
-        "search", _seq_frame(state, m), found.steps, found.score, time.perf_counter() - t0, 0, False,
-        len(state.gaussians), note=f"best of {len(found.tried)} motions: {found.best.name}",
+        "search", _seq_frame(state, state.num_init_chunks()), found.steps, found.score,
+        time.perf_counter() - t0, 0, False, len(state.gaussians),
+        note=f"best of {len(found.tried)} motions: {found.best.name}",
     )  # fmt: skip
     state.history.append(record)
+    return found, record
+
+
+def start_from(state: SlamState, hyp: Hypothesis) -> None:
+    """Set the init knots to ``hyp``'s constant velocity."""
+    with torch.no_grad():
+        state.traj.base.copy_(hyp.knots(state.num_init_chunks() + 1))
+
+
+def start_from_best_motion(state: SlamState, reporter: StageReporter | None = None) -> StageRecord:
+    """Set the init knots to the best constant-velocity hypothesis."""
+    found, record = search(state, reporter)
+    start_from(state, found.best)
     return record
 
 
@@ -131,6 +144,24 @@ def map_window(state: SlamState, k: int, reporter: StageReporter | None = None) 
     record = run_stage(state, spec, reporter)
     record.added = added
     return record
+
+
+def step_chunk(
+    state: SlamState, note: Callable[[StageRecord], None], reporter: StageReporter | None = None
+) -> None:
+    """The next chunk: tracking, then a local BA every ``mapping.every`` frames and a global BA every
+    ``global_ba.every`` frames (not at the last chunk: the final one follows); ``note`` gets each
+    stage's record as it ends."""
+    cfg, pos = state.cfg, state.position
+    k = pos.next_chunk
+    note(track(state, k, reporter))
+    pos.since_mapping += 1
+    if pos.since_mapping >= cfg.mapping.every:
+        note(map_window(state, k, reporter))
+        pos.since_mapping = 0
+    if cfg.global_ba.every > 0 and (k + 1) % cfg.global_ba.every == 0 and k + 1 < state.data.n_chunks:
+        note(global_ba(state, final=False, reporter=reporter))
+    pos.next_chunk += 1
 
 
 def global_ba(state: SlamState, final: bool, reporter: StageReporter | None = None) -> StageRecord:

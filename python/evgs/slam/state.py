@@ -19,7 +19,7 @@ from evgs.slam.range_prior import RangePrior
 from evgs.slam.trajectory import Trajectory
 from evgs.slam.windows import EventData
 
-STAGES = ("init", "track", "map", "gba", "final", "search")
+STAGES = ("init", "track", "map", "gba", "final", "search", "branch")
 
 
 def stage_seed(seed: int, stage: str, frame: int) -> int:
@@ -66,6 +66,7 @@ class SlamState:
     history: list[StageRecord] = field(default_factory=list)
     metric: dict = field(default_factory=dict)  # the metric-scale estimate applied to the outputs
     range_prior: RangePrior | None = None  # the range meter's loss term (scale.range_weight > 0)
+    branch: str = ""  # a branch of the run's start (evgs.slam.branches) names its diagnostics; "" = the run
 
     def num_init_chunks(self) -> int:
         """``m``: chunks of the initialization (fewer when the sequence is shorter)."""

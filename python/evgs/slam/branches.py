@@ -1,0 +1,83 @@
+"""The start of a run in branches (``init.branches``): each of the motion search's best hypotheses runs
+the initialization and ``init.branch_frames`` tracked frames, and the branch whose map and trajectory
+explain fixed windows of those chunks best goes on.
+
+Why: on the search's ten chunks an orbit, its mirror image (the turn about the image-plane axes
+reversed, which a reversed relief explains as well) and the same orbit at half the rate (with twice the
+relief) score within the refits' noise, and which one wins changes with the seed (swirl_good: the
+mirror on seed 1, half the rate on seed 2). Tracking then carries the start on; the velocity prior of
+the first frames (``tracking.velocity_prior_frames``) holds it. Twenty-five frames later the map has a
+wider baseline and the true branch explains the events clearly better (docs/ablations.md §35).
+
+The branches start from the same seeded map and random state, so they differ by their hypothesis alone,
+and they are compared on the same windows (:func:`evgs.slam.optimize.fixed_window_loss`). The kept
+branch goes on as if it had been the only one; the others' time is recorded in a ``branch`` stage.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+
+import torch
+
+from evgs.slam import checkpoint
+from evgs.slam.motion_search import Hypothesis
+from evgs.slam.optimize import StageReporter, fixed_window_loss, range_penalty, range_unit
+from evgs.slam.stages import initialize, start_from, step_chunk
+from evgs.slam.state import SlamState, StageRecord, stage_seed
+
+BRANCH_WINDOWS = 40  # windows the branches are compared on (8 scored the search's hypotheses: noisier)
+
+
+@torch.no_grad()
+def branch_score(state: SlamState, n: int) -> float:
+    """The loss of ``state`` on fixed windows of chunks ``0..n-1``, with the range meter's terms as every
+    stage has them."""
+    cfg, span = state.cfg, state.data.span(0, n)
+    loss = fixed_window_loss(state, span, stage_seed(cfg.seed, "branch", n), BRANCH_WINDOWS)
+    unit = range_unit(state, cfg.scale.range_weight)
+    return loss + float(range_penalty(state, span, unit, cfg.scale.range_weight, cfg.scale.rate_weight))
+
+
+def run_branches(
+    state: SlamState,
+    hyps: list[Hypothesis],
+    note: Callable[[StageRecord], None],
+    reporter: StageReporter | None = None,
+) -> SlamState:
+    """Each of ``hyps`` from a copy of ``state`` (searched, not initialized): the initialization, then
+    ``init.branch_frames`` chunks; returns the best branch, its position after them and a ``branch``
+    record in its history. Branch ``i``'s stages reach ``note`` as ``branch<i>/<stage>``, its
+    diagnostics are named ``branch<i>_<stage>_...``."""
+    cfg, data = state.cfg, state.data
+    n = min(data.n_chunks, state.num_init_chunks() + cfg.init.branch_frames)
+    start = checkpoint.snapshot(state)
+    runs: list[tuple[float, float, Hypothesis, SlamState]] = []
+    for i, hyp in enumerate(hyps):
+        t0 = time.perf_counter()
+        branch = checkpoint.restore(start, cfg, data)
+        branch.branch = label = f"branch{i}"
+
+        def tagged(record: StageRecord, label: str = label) -> None:
+            note(dataclasses.replace(record, stage=f"{label}/{record.stage}"))
+
+        start_from(branch, hyp)
+        tagged(initialize(branch, reporter))
+        branch.position.initialized, branch.position.next_chunk = True, branch.num_init_chunks()
+        while branch.position.next_chunk < n:
+            step_chunk(branch, tagged, reporter)
+        runs.append((branch_score(branch, n), time.perf_counter() - t0, hyp, branch))
+    best = min(runs, key=lambda run: run[0])
+    score, _, hyp, kept = best
+    kept.branch = ""
+    others = sum(seconds for _, seconds, _, b in runs if b is not kept)
+    scores = ", ".join(f"{h.name} {s:.5f}" for s, _, h, _ in runs)
+    record = StageRecord(
+        "branch", cfg.data.start_frame + n, 0, score, others, 0, False, len(kept.gaussians),
+        note=f"kept {hyp.name} of {len(runs)} (loss on chunks 0–{n - 1}: {scores})",
+    )  # fmt: skip
+    kept.history.append(record)
+    note(record)
+    return kept
