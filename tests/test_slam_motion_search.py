@@ -20,7 +20,7 @@ from evgs.slam.motion_search import (  # noqa: E402
     search_motion,
     veered,
 )
-from evgs.slam.stages import start_from_best_motion  # noqa: E402
+from evgs.slam.stages import search, start_from  # noqa: E402
 from slam_synth import make_sequence, search_state  # noqa: E402
 
 RATE, DEPTH = 0.01, 3.0
@@ -294,15 +294,18 @@ def test_refit_score_prefers_the_true_motion(synth):
 def test_search_sets_the_init_knots_and_records_its_choice(synth):
     state = synth_state(synth, "init.search_steps=5", "init.search_polls=2")
     before = state.gaussians.state()
-    record = start_from_best_motion(state)
+    found, record = search(state)
+    start_from(state, found.best)
     m = state.num_init_chunks()
     assert record.stage == "search" and record.note.startswith("best of ")
     chosen = record.note.split(": ")[1]
-    assert state.history[-1] is record and chosen in record.note
+    assert state.history[-1] is record and chosen == found.best.name
+    # Every motion scored, the best first (the branches of init.branches take them in this order).
+    assert [h.name for h in found.ranked] == [name for name, _ in sorted(found.tried, key=lambda t: t[1])]
     with torch.no_grad():
         knots = state.traj.knots()
     assert torch.allclose(knots[0], torch.eye(4, dtype=torch.float64))
-    assert len(knots) == m + 1
+    assert torch.allclose(knots, found.best.knots(m + 1).to(knots.dtype))
     # The map the initialization starts from is the seeded one, untouched by the trial fits.
     for k, v in state.gaussians.state().items():
         assert torch.equal(v, before[k])

@@ -52,13 +52,6 @@ def start_from(state: SlamState, hyp: Hypothesis) -> None:
         state.traj.base.copy_(hyp.knots(state.num_init_chunks() + 1))
 
 
-def start_from_best_motion(state: SlamState, reporter: StageReporter | None = None) -> StageRecord:
-    """Set the init knots to the best constant-velocity hypothesis."""
-    found, record = search(state, reporter)
-    start_from(state, found.best)
-    return record
-
-
 def initialize(state: SlamState, reporter: StageReporter | None = None) -> StageRecord:
     m = state.num_init_chunks()
     cfg = state.cfg
