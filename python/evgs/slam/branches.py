@@ -5,9 +5,10 @@ explain fixed windows of those chunks best goes on.
 Why: on the search's ten chunks an orbit, its mirror image (the turn about the image-plane axes
 reversed, which a reversed relief explains as well) and the same orbit at half the rate (with twice the
 relief) score within the refits' noise, and which one wins changes with the seed (swirl_good: the
-mirror on seed 1, half the rate on seed 2). Tracking then carries the start on; the velocity prior of
-the first frames (``tracking.velocity_prior_frames``) holds it. Twenty-five frames later the map has a
-wider baseline and the true branch explains the events clearly better (docs/ablations.md §35).
+mirror on seed 1, half the rate on seed 2). Twenty-five frames on, the map has a wider baseline: on
+swirl_good seeds 0 and 1 the true branch then explains the events best, but on seed 2 the mirror's does,
+and on swirl_low none of the three best motions turns enough. So it is off by default
+(docs/ablations.md §35).
 
 The branches start from the same seeded map and random state, so they differ by their hypothesis alone,
 and they are compared on the same windows (:func:`evgs.slam.optimize.fixed_window_loss`). The kept
