@@ -15,7 +15,7 @@ from evgs.config import (
     ConfigError,
     add_config_arguments,
     config_from_args,
-    config_from_dict,
+    config_from_snapshot,
     load_config,
     save_config,
 )
@@ -164,10 +164,24 @@ def test_save_round_trip(tmp_path: Path):
     with open(out, "rb") as f:
         doc = tomllib.load(f)
     assert "inherit" not in doc and doc["seq"] == cfg.seq
-    assert config_from_dict(doc) == cfg
+    assert config_from_snapshot(doc) == (cfg, [])
     doc["loss"]["bogus"] = 1
     with pytest.raises(ConfigError, match="loss.bogus"):
-        config_from_dict(doc, "snapshot")
+        config_from_snapshot(doc, "snapshot")
+
+
+def test_an_older_snapshot_takes_the_defaults_of_keys_it_lacks():
+    """A run written before a key existed resumes with that key at default.toml's value (its feature
+    off); the keys are named. A value the snapshot does hold is kept."""
+    cfg = load_config("synthetic/orbit_ambient")
+    doc = cfg.to_dict()
+    del doc["init"]["branches"], doc["tracking"]["velocity_prior_frames"]
+    old, filled = config_from_snapshot(doc, "snapshot")
+    assert old == cfg and filled == ["init.branches", "tracking.velocity_prior_frames"]
+    assert old.tracking.velocity_prior == 3.0  # the orbit's, not default.toml's 0
+    doc["tracking"]["velocity_prior"] = -1.0
+    with pytest.raises(ConfigError, match="tracking.velocity_prior must be >= 0"):
+        config_from_snapshot(doc, "snapshot")
 
 
 def test_range_checks_name_the_keys():

@@ -164,3 +164,18 @@ def test_branched_start_names_its_branches_and_resumes_from_before_them(seq_dir:
     assert main(["run", "--resume", str(run.root), "--quiet"]) == 0
     assert (run.root / "traj_est.txt").read_bytes() == (full / "traj_est.txt").read_bytes()
     assert (run.root / "gaussians.ply").read_bytes() == (full / "gaussians.ply").read_bytes()
+
+
+def test_a_run_directory_from_an_older_evgs_reads_its_config(tmp_path: Path):
+    """A snapshot that lacks keys a later version added (as every run written before them does) still
+    loads for ``--resume``, the keys at their defaults and named in the run's log."""
+    cfg = load_config("synthetic/tiny", SETS)
+    run = RunDir.create(tmp_path, "synth", cfg)
+    text = run.config_path.read_text()
+    old = "\n".join(line for line in text.splitlines() if not line.startswith("branch_frames ="))
+    run.config_path.write_text(old + "\n")
+    assert run.config() == cfg
+    log = (run.root / "log.txt").read_text()
+    assert (
+        "keys missing from config.toml (added after this run), at their defaults: init.branch_frames" in log
+    )

@@ -454,11 +454,27 @@ def config_from_args(args: argparse.Namespace) -> Config:
     return load_config(args.config or DEFAULT_CONFIG, args.overrides)
 
 
-def config_from_dict(doc: Mapping[str, Any], source: str = "config") -> Config:
-    """A complete config from a plain dict (e.g. a run's ``config.toml`` snapshot)."""
-    cfg = _build(Config, _validate(doc, Config, source), source)
+def config_from_snapshot(doc: Mapping[str, Any], source: str = "config") -> tuple[Config, list[str]]:
+    """The config of a run's resolved ``config.toml`` snapshot, and the keys it lacked.
+
+    A snapshot is complete for the evgs that wrote it; a key a later version added is missing from it and
+    takes default.toml's value, which leaves the feature it brought off, so an older run resumes as it was
+    configured. Unknown keys and bad values are errors as in any config."""
+    own = _validate(doc, Config, source)
+    defaults = _read_chain(DEFAULT_CONFIG)
+    cfg = _build(Config, _merge(defaults, own), source)
     _check_ranges(cfg, source)
-    return cfg
+    return cfg, _missing_keys(defaults, own)
+
+
+def _missing_keys(full: Mapping[str, Any], doc: Mapping[str, Any], prefix: str = "") -> list[str]:
+    missing = []
+    for key, value in full.items():
+        if key not in doc:
+            missing.append(f"{prefix}{key}")
+        elif isinstance(value, dict):
+            missing += _missing_keys(value, doc[key], f"{prefix}{key}.")
+    return missing
 
 
 def save_config(config: Config, path: str | Path) -> None:
@@ -474,7 +490,7 @@ __all__ = [
     "ConfigError",
     "add_config_arguments",
     "config_from_args",
-    "config_from_dict",
+    "config_from_snapshot",
     "load_config",
     "resolve_config_path",
     "save_config",

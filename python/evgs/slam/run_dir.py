@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from evgs.config import Config, config_from_dict, save_config
+from evgs.config import Config, config_from_snapshot, save_config
 from evgs.data.tum import write_tum
 from evgs.eval.run import evaluate_run, read_run_config, resolve_sequence
 from evgs.io_util import atomic_path
@@ -57,7 +57,12 @@ class RunDir:
         return cls(root)
 
     def config(self) -> Config:
-        return config_from_dict(read_run_config(self.root), str(self.config_path))
+        """The run's config snapshot; keys a later evgs added take their defaults (said in the log)."""
+        cfg, filled = config_from_snapshot(read_run_config(self.root), str(self.config_path))
+        if filled:
+            names = ", ".join(filled)
+            self.log(f"keys missing from config.toml (added after this run), at their defaults: {names}")
+        return cfg
 
     def log(self, line: str) -> None:
         """Append a time-stamped line to ``log.txt``."""
