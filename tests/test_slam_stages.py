@@ -10,7 +10,7 @@ import torch
 
 pytest.importorskip("evgs.render")
 
-from evgs.config import load_config  # noqa: E402
+from evgs.config import ConfigError, load_config  # noqa: E402
 from evgs.slam import pose_solver  # noqa: E402
 from evgs.slam.gaussians import PARAM_NAMES, Gaussians  # noqa: E402
 from evgs.slam.guards import BrightnessAnchor  # noqa: E402
@@ -301,6 +301,42 @@ def test_mapping_without_poses_trains_the_map_only(synth):
     assert record.iterations == 4
     assert torch.equal(state.traj.knots(), knots)
     assert not torch.equal(state.gaussians["means"][: len(means)], means)
+
+
+def test_global_ba_windows_reach_global_ba_max_n_winsize(synth, monkeypatch):
+    """``global_ba.max_n_winsize`` lengthens the global BA's windows only; 0 keeps data.max_n_winsize."""
+    cfg = config(
+        "global_ba.num_opti_steps_final=20",
+        "mapping.num_opti_steps_for_BA=20",
+        "economy.coarse_factor=1",
+        "data.min_n_winsize=200",
+        "data.max_n_winsize=500",
+    )
+    short, long_ = 500, 2000
+    lengths: dict[str, list[int]] = {"final": [], "map": []}
+    take = EventData.windows
+
+    def spy(self, sampler, batch, factor=1):
+        win = take(self, sampler, batch, factor)
+        lengths[stage].extend((win.ends - win.starts).tolist())
+        return win
+
+    monkeypatch.setattr(EventData, "windows", spy)
+    state = gt_state(
+        synth, dataclasses.replace(cfg, global_ba=dataclasses.replace(cfg.global_ba, max_n_winsize=long_)), 5
+    )
+    assert state.data.span(0, 4)[1] - state.data.span(0, 4)[0] > long_  # the span allows long windows
+    stage = "final"
+    global_ba(state, final=True)
+    stage = "map"
+    map_window(state, 3)
+    assert max(lengths["final"]) > short and max(lengths["final"]) <= long_
+    assert max(lengths["map"]) <= short
+    sampler = state.data.sampler(state.data.span(0, 4), 0)  # 0: the data's
+    starts, ends = sampler.sample(50)
+    assert int((np.asarray(ends) - np.asarray(starts)).max()) <= short
+    with pytest.raises(ConfigError, match="global_ba.max_n_winsize must be 0"):
+        config(f"global_ba.max_n_winsize={cfg.data.min_n_winsize - 1}")
 
 
 def test_start_frame_counts_in_the_data_sets_numbering(synth):

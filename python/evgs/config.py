@@ -104,6 +104,7 @@ class GlobalBAConfig:
     num_opti_steps_final: int
     lr_boost: float
     tv_weight: float
+    max_n_winsize: int
 
 
 @dataclass(frozen=True)
@@ -285,6 +286,8 @@ def _check_ranges(cfg: Config, source: str) -> None:
     d, g, s = cfg.data, cfg.gaussians, cfg.strategy
     if not 0 < d.min_n_winsize <= d.max_n_winsize:
         problems.append("need 0 < data.min_n_winsize <= data.max_n_winsize")
+    if cfg.global_ba.max_n_winsize != 0 and cfg.global_ba.max_n_winsize < d.min_n_winsize:
+        problems.append("global_ba.max_n_winsize must be 0 (data.max_n_winsize) or >= data.min_n_winsize")
     for key, value in [
         ("gaussians.init_opacity", g.init_opacity),
         ("strategy.reset_opacity", s.reset_opacity),

@@ -47,6 +47,7 @@ class StageSpec:
     anchored: bool = False  # brightness anchor term
     lr_boost: float = 1.0  # every Adam rate starts this many times higher, decaying to 1× at the end
     tv_weight: float = 0.0  # weight of the renders' total variation (a prior on the map's appearance)
+    max_window: int = 0  # longest sampled window in events (0 = data.max_n_winsize)
     # False: a fixed schedule, no densification, pruning or early switches, so the result is a smooth
     # function of the fixed knots (the motion search compares refits of nearby motions)
     adaptive: bool = True
@@ -205,7 +206,7 @@ def run_stage(state: SlamState, spec: StageSpec, reporter: StageReporter | None 
     """Optimise for up to ``spec.iterations`` iterations; the trajectory is rebased at the end."""
     cfg, data, traj = state.cfg, state.data, state.traj
     econ = cfg.economy
-    sampler = data.sampler(spec.span, spec.seed)
+    sampler = data.sampler(spec.span, spec.seed, spec.max_window)
     traj.set_trainable(list(spec.trainable_knots))
     pose_opt = (
         torch.optim.Adam([traj.delta], lr=cfg.trajectory.pose_lr) if len(spec.trainable_knots) else None

@@ -19,7 +19,7 @@ from evgs.slam.windows import EventData
 
 def diagnostic_sampler(data: EventData, spec: StageSpec) -> WindowSampler:
     """Its own stream (seed differs from the stage's), so diagnostics never change a run's windows."""
-    return data.sampler(spec.span, spec.seed ^ 0x5BD1E995)
+    return data.sampler(spec.span, spec.seed ^ 0x5BD1E995, spec.max_window)
 
 
 @torch.no_grad()

@@ -114,10 +114,12 @@ class EventData:
         last = min(int(np.searchsorted(f, t[span[1] - 1], side="right")), len(f) - 1)
         return int(f[first]), int(f[last])
 
-    def sampler(self, span: tuple[int, int], seed: int) -> WindowSampler:
+    def sampler(self, span: tuple[int, int], seed: int, max_window: int = 0) -> WindowSampler:
+        """Windows of the events ``span``, at most ``max_window`` events long (0 = ``data.max_n_winsize``)."""
         c = self.cfg
         try:
-            return WindowSampler(span, c.min_n_winsize, c.max_n_winsize, seed, c.window_mode, c.seg_num)
+            longest = max_window or c.max_n_winsize
+            return WindowSampler(span, c.min_n_winsize, longest, seed, c.window_mode, c.seg_num)
         except ValueError as e:
             raise ValueError(
                 f"events {span[0]}..{span[1]} ({span[1] - span[0]} events): {e}; lower data.min_n_winsize"
