@@ -199,6 +199,8 @@ def test_range_checks_name_the_keys():
             load_config(overrides=[f"tracking.velocity_prior_floor={floor}"])
     with pytest.raises(ConfigError, match="tracking.velocity_prior_frames must be >= 0"):
         load_config(overrides=["tracking.velocity_prior_frames=-1"])
+    with pytest.raises(ConfigError, match="loss.depth_tv must be >= 0"):
+        load_config(overrides=["loss.depth_tv=-1"])
 
 
 def test_command_line_arguments():

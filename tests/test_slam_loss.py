@@ -11,6 +11,7 @@ from evgs.config import load_config
 from evgs.slam.loss import (
     _blur_valid,
     _gaussian_kernel,
+    depth_variation,
     event_loss,
     event_mask,
     linlog,
@@ -114,6 +115,32 @@ def test_total_variation_known_values_and_preference_for_filled_faces():
     ring[0, 7:13, 7:13] = 0.0
     assert total_variation(filled) < total_variation(ring)
     assert total_variation(torch.full((2, 8, 8), 0.3)).item() == 0.0
+
+
+def test_depth_variation_known_values_scale_invariance_and_transparent_pixels():
+    alpha = torch.ones((1, 6, 8), dtype=torch.float64)
+    assert depth_variation(torch.full((1, 6, 8), 3.0, dtype=torch.float64), alpha).item() == 0.0
+    # A plane tilted along x: depth 3 + 0.1·x, median 3.35 over the 8 columns (3.3 and 3.4 averaged by
+    # torch's lower median: 3.3); every horizontal pair differs by 0.1, every vertical pair by 0.
+    tilted = (3.0 + 0.1 * torch.arange(8, dtype=torch.float64)).expand(1, 6, 8).clone()
+    assert depth_variation(tilted, alpha).item() == pytest.approx(0.1 / 3.3, rel=1e-12)
+    # The map's scale does not matter: the depth is relative to its median.
+    assert depth_variation(5 * tilted, alpha).item() == pytest.approx(0.1 / 3.3, rel=1e-12)
+    # The expected depth D is alpha-weighted: D / alpha is what varies; transparent pixels do not count.
+    half = alpha.clone()
+    half[0, :, 4:] = 0.8
+    wild = tilted * half
+    wild[0, 0, :] = 100.0
+    half[0, 0, :] = 0.1
+    assert depth_variation(wild, half).item() == pytest.approx(0.1 / 3.3, rel=1e-12)
+    assert depth_variation(wild, torch.zeros_like(half)).item() == 0.0
+
+
+def test_depth_variation_gradients_match_finite_differences():
+    gen = torch.Generator().manual_seed(3)
+    alpha = torch.rand((2, 7, 9), dtype=torch.float64, generator=gen) * 0.45 + 0.55
+    depth = (torch.rand((2, 7, 9), dtype=torch.float64, generator=gen) + 2) * alpha
+    assert torch.autograd.gradcheck(depth_variation, (depth.requires_grad_(), alpha.requires_grad_()))
 
 
 def test_a_shifted_edge_is_penalised_more_the_further_it_moves():

@@ -15,7 +15,7 @@ from evgs.slam import pose_solver  # noqa: E402
 from evgs.slam.gaussians import PARAM_NAMES, Gaussians  # noqa: E402
 from evgs.slam.guards import BrightnessAnchor  # noqa: E402
 from evgs.slam.lie import se3_exp, se3_inverse, se3_log  # noqa: E402
-from evgs.slam.loss import total_variation  # noqa: E402
+from evgs.slam.loss import depth_variation, total_variation  # noqa: E402
 from evgs.slam.optimize import Convergence, StageSpec, loss_step, lr_boost, set_lr_boost  # noqa: E402
 from evgs.slam.pipeline import initial_gaussians, seeding_weights  # noqa: E402
 from evgs.slam.pose_solver import prior_curvature, prior_weight  # noqa: E402
@@ -371,3 +371,16 @@ def test_total_variation_enters_the_global_ba_only(synth):
     step = loss_step(state, spec, state.data.windows(state.data.sampler(spec.span, 0), 1, 1), 1)
     tv = total_variation(step.out.color[..., 0]).item()
     assert step.total.item() == pytest.approx(step.terms.total.item() + 0.5 * tv, rel=1e-6)
+
+
+def test_depth_variation_enters_the_stages_that_train_the_map_only(synth):
+    """``loss.depth_tv`` adds ``w · depth_variation`` to the loss of a stage that trains the map (init,
+    local and global BAs), not to tracking's."""
+    state = gt_state(synth, config("loss.depth_tv=0.5"), 5)
+    win = state.data.windows(state.data.sampler(state.data.span(0, 4), 0), 1, 1)
+    for train in (True, False):
+        spec = StageSpec("map", 4, 1, state.data.span(0, 4), 1, 0, [], [], train)
+        step = loss_step(state, spec, win, 1)
+        extra = 0.5 * depth_variation(step.out.depth, step.out.alpha).item() if train else 0.0
+        assert extra >= 0 and (extra > 0) == train
+        assert step.total.item() == pytest.approx(step.terms.total.item() + extra, rel=1e-6)

@@ -138,6 +138,7 @@ class LossConfig:
     ssim_window: int
     ssim_sigma: float
     event_mask_threshold: float
+    depth_tv: float
 
 
 @dataclass(frozen=True)
@@ -333,6 +334,8 @@ def _check_ranges(cfg: Config, source: str) -> None:
         problems.append("gaussians.init_fill_gap must be >= 0 (0 = off)")
     if not 0 <= cfg.loss.lambda_ssim <= 1:
         problems.append("loss.lambda_ssim must be in [0, 1]")
+    if cfg.loss.depth_tv < 0:
+        problems.append("loss.depth_tv must be >= 0 (0 = off)")
     positive = {
         "data.training_batch_size": d.training_batch_size,
         "init.num_frames": cfg.init.num_frames,

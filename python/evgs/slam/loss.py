@@ -133,6 +133,26 @@ def total_variation(img: Tensor) -> Tensor:
     return dx + dy
 
 
+def depth_variation(depth: Tensor, alpha: Tensor, min_alpha: float = 0.5) -> Tensor:
+    """Mean ``|∂x D̄| + |∂y D̄|`` of the mean depth ``D̄ = D / α`` (B, H, W), relative to its median, over
+    neighbouring pixels that are both opaque (``α > min_alpha``); 0 where none are.
+
+    A prior on the map's relief (``loss.depth_tv``). From a narrow baseline the events fix a target's
+    outline, not its relief, and a map free to put each Gaussian at any depth predicts parallax the
+    next views do not show; tracking on it takes too short a step (the bas-relief trade of turn
+    against depth, docs/ablations.md §14, §35). Relative, so the map's arbitrary scale does not weigh;
+    L1, so a true step in depth (a panel's edge in front of the bus) costs only its height.
+    """
+    opaque = alpha > min_alpha
+    if not bool(opaque.any()):
+        return depth.sum() * 0
+    mean = depth / alpha.clamp(min=min_alpha)
+    mean = mean / mean[opaque].median()
+    dx = (mean[..., :, 1:] - mean[..., :, :-1]).abs()[opaque[..., :, 1:] & opaque[..., :, :-1]]
+    dy = (mean[..., 1:, :] - mean[..., :-1, :]).abs()[opaque[..., 1:, :] & opaque[..., :-1, :]]
+    return sum((d.mean() for d in (dx, dy) if d.numel()), depth.sum() * 0)
+
+
 @dataclass(frozen=True)
 class LossTerms:
     total: Tensor

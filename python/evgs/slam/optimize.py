@@ -26,7 +26,7 @@ from evgs.data.sequence import Camera
 from evgs.render import RenderResult, render
 from evgs.slam.gaussians import make_optimizer
 from evgs.slam.guards import blocker_mask, clamp_colors_
-from evgs.slam.loss import LossTerms, event_loss, total_variation, valid_mask
+from evgs.slam.loss import LossTerms, depth_variation, event_loss, total_variation, valid_mask
 from evgs.slam.state import SlamState, StageRecord
 from evgs.slam.strategy import DefaultStrategy, reset_opacity
 from evgs.slam.windows import Windows, scaled_camera
@@ -149,6 +149,8 @@ def loss_step(
     total = terms.total
     if spec.tv_weight > 0:
         total = total + spec.tv_weight * total_variation(gray)
+    if cfg.loss.depth_tv > 0 and spec.train_gaussians:
+        total = total + cfg.loss.depth_tv * depth_variation(out.depth, out.alpha)
     if spec.anchored:
         total = total + state.anchor.penalty(out.color, out.alpha)
     total = total + range_penalty(state, spec.span, unit, cfg.scale.range_weight, cfg.scale.rate_weight)
