@@ -148,16 +148,16 @@ def test_acceleration_penalty_is_zero_for_constant_velocity_only():
     for _ in range(4):
         knots.append(knots[-1] @ step)
     t_us = np.arange(5) * 40_000
-    assert float(Trajectory(t_us, torch.stack(knots)).acceleration_penalty(2.0)) < 1e-18
+    assert float(Trajectory(t_us, torch.stack(knots)).acceleration_penalty(2.0).detach()) < 1e-18
     # One knot pushed by a rotation ε: the velocity changes by ±ε/dt around it, so the penalty is the
     # mean over the 3 velocity differences of (ε/dt²)²·(1 + 4 + 1)/3 (the middle one doubles).
     eps = 1e-3
     bent = list(knots)
     bent[2] = bent[2] @ se3_exp(torch.tensor([0, 0, 0, eps, 0, 0], dtype=D))
-    pen = float(Trajectory(t_us, torch.stack(bent)).acceleration_penalty(2.0))
+    pen = float(Trajectory(t_us, torch.stack(bent)).acceleration_penalty(2.0).detach())
     dt = 0.04
     assert pen == pytest.approx((eps / dt**2) ** 2 * 6 / 3, rel=2e-2)
-    assert float(Trajectory(t_us[:2], torch.stack(knots[:2])).acceleration_penalty(2.0)) == 0.0
+    assert float(Trajectory(t_us[:2], torch.stack(knots[:2])).acceleration_penalty(2.0).detach()) == 0.0
 
 
 def make_traj(method: str = "geodesic") -> tuple[Trajectory, torch.Tensor]:
