@@ -120,8 +120,8 @@ def test_total_variation_known_values_and_preference_for_filled_faces():
 def test_depth_variation_known_values_scale_invariance_and_transparent_pixels():
     alpha = torch.ones((1, 6, 8), dtype=torch.float64)
     assert depth_variation(torch.full((1, 6, 8), 3.0, dtype=torch.float64), alpha).item() == 0.0
-    # A plane tilted along x: depth 3 + 0.1·x, median 3.35 over the 8 columns (3.3 and 3.4 averaged by
-    # torch's lower median: 3.3); every horizontal pair differs by 0.1, every vertical pair by 0.
+    # A plane tilted along x: depth 3 + 0.1·x over 8 columns, whose median torch takes as the lower of
+    # the two middle values, 3.3; every horizontal pair differs by 0.1, every vertical pair by 0.
     tilted = (3.0 + 0.1 * torch.arange(8, dtype=torch.float64)).expand(1, 6, 8).clone()
     assert depth_variation(tilted, alpha).item() == pytest.approx(0.1 / 3.3, rel=1e-12)
     # The map's scale does not matter: the depth is relative to its median.
