@@ -87,6 +87,7 @@ def main() -> None:
     seq = Sequence.load(f"data/{args.seq}")
     cfg = dataclasses.replace(cfg, seq=str(seq.root))
     data = EventData.from_sequence(seq, cfg.data)
+    torch.set_num_threads(cfg.torch_threads)  # as run_slam does: the same bits on any machine
     state = new_state(cfg, data)
     rel = gt_knots(seq, data, cfg.gaussians.init_depth)
     m = state.num_init_chunks()

@@ -5,6 +5,9 @@ bitwise where an uninterrupted one does."""
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -103,9 +106,14 @@ CHEAP = ["init.num_opti_steps_for_init=20", "tracking.num_opti_steps=6", "mappin
          "strategy.refine_every=3", "economy.patience=2", "economy.min_fraction=0"]  # fmt: skip
 
 
-def test_resume_after_interrupt_matches_uninterrupted(seq_dir: Path, tmp_path: Path):
+@pytest.fixture(scope="module")
+def cheap_run(seq_dir, tmp_path_factory) -> Path:
     """Few iterations, but every stage, refinement, early stopping and the coarse level take part."""
-    full = run_cli(seq_dir, tmp_path / "full", *CHEAP)
+    return run_cli(seq_dir, tmp_path_factory.mktemp("cheap"), *CHEAP)
+
+
+def test_resume_after_interrupt_matches_uninterrupted(cheap_run: Path, seq_dir: Path, tmp_path: Path):
+    full = cheap_run
     cfg = load_config(full / "config.toml")
     run = RunDir.create(tmp_path / "runs", "synth", cfg)
     state = new_state(cfg, EventData.from_sequence(Sequence.load(seq_dir), cfg.data))
@@ -115,6 +123,21 @@ def test_resume_after_interrupt_matches_uninterrupted(seq_dir: Path, tmp_path: P
     assert main(["run", "--resume", str(run.root), "--quiet"]) == 0
     assert (run.root / "traj_est.txt").read_bytes() == (full / "traj_est.txt").read_bytes()
     assert (run.root / "gaussians.ply").read_bytes() == (full / "gaussians.ply").read_bytes()
+
+
+def test_a_run_repeats_bitwise_on_one_thread(cheap_run: Path, seq_dir: Path, tmp_path: Path):
+    """One Rust and one torch thread in a fresh process against this process's defaults: the run pins
+    torch's thread count (``torch_threads``) and the Rust core is invariant to its own."""
+    args = [sys.executable, "-m", "evgs", "run", "--seq", str(seq_dir), "--config", "synthetic/tiny",
+            "--out", str(tmp_path), "--quiet"]  # fmt: skip
+    for s in (*SETS, *CHEAP):
+        args += ["--set", s]
+    env = os.environ | {"RAYON_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    subprocess.run(args, env=env, check=True, cwd=Path(__file__).parents[1])
+    (run,) = (tmp_path / "synth").iterdir()
+    assert (run / "traj_est.txt").read_bytes() == (cheap_run / "traj_est.txt").read_bytes()
+    assert (run / "gaussians.ply").read_bytes() == (cheap_run / "gaussians.ply").read_bytes()
+    assert json.loads((run / "metrics.json").read_text())["torch_threads"] == 2  # the config's, not the env's
 
 
 def test_missing_seenic_sequence_says_what_to_download(tmp_path: Path, monkeypatch, capsys):

@@ -197,6 +197,7 @@ class ScaleConfig:
 class Config:
     seq: str
     seed: int
+    torch_threads: int
     data: DataConfig
     trajectory: TrajectoryConfig
     init: InitConfig
@@ -343,6 +344,7 @@ def _check_ranges(cfg: Config, source: str) -> None:
         "gaussians.bounding_size": g.bounding_size,
         "strategy.refine_every": s.refine_every,
         "mapping.window": cfg.mapping.window,
+        "torch_threads": cfg.torch_threads,
     }
     problems += [f"{key} must be > 0" for key, value in positive.items() if value <= 0]
     if problems:

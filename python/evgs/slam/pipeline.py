@@ -150,8 +150,12 @@ def run_slam(
     reporter: StageReporter | None = None,
     log: Callable[[str], None] | None = None,
 ) -> SlamState:
-    """Run (or continue, from ``state.position``) to the end; write the outputs into ``run``."""
+    """Run (or continue, from ``state.position``) to the end; write the outputs into ``run``.
+
+    Pins torch's CPU thread count to ``cfg.torch_threads`` for the process: a run then repeats bit for bit
+    on any machine, fresh or resumed."""
     cfg, n_chunks = state.cfg, state.data.n_chunks
+    torch.set_num_threads(cfg.torch_threads)
 
     def note(record: StageRecord) -> None:
         run.log(describe(record))

@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from evgs.config import Config, config_from_snapshot, save_config
 from evgs.data.tum import write_tum
@@ -114,6 +115,7 @@ def pipeline_metrics(state: SlamState) -> dict:
         "gaussians": len(state.gaussians),
         "iterations": sum(r.iterations for r in h),
         "seconds": sum(r.seconds for r in h),
+        "torch_threads": torch.get_num_threads(),  # the count the seconds (and the bits) came from
         "events_processed": sum(r.events for r in h),
         "stopped_early_stages": sum(r.stopped_early for r in h),
         "pruned_blockers": sum(r.pruned_blockers for r in h),
