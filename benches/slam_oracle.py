@@ -30,7 +30,7 @@ from evgs.render import render
 from evgs.slam.lie import se3_exp, se3_inverse, se3_log
 from evgs.slam.loss import pointwise_error, predicted_events
 from evgs.slam.optimize import StageSpec, run_stage
-from evgs.slam.pipeline import new_state
+from evgs.slam.pipeline import new_state, pin_threads
 from evgs.slam.stages import set_brightness_reference, track
 from evgs.slam.state import SlamState, stage_seed
 from evgs.slam.trajectory import Trajectory
@@ -87,7 +87,7 @@ def main() -> None:
     seq = Sequence.load(f"data/{args.seq}")
     cfg = dataclasses.replace(cfg, seq=str(seq.root))
     data = EventData.from_sequence(seq, cfg.data)
-    torch.set_num_threads(cfg.torch_threads)  # as run_slam does: the same bits on any machine
+    pin_threads(cfg)  # as run_slam does
     state = new_state(cfg, data)
     rel = gt_knots(seq, data, cfg.gaussians.init_depth)
     m = state.num_init_chunks()

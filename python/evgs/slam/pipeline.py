@@ -144,6 +144,12 @@ def start(state: SlamState, note: Callable[[StageRecord], None], reporter: Stage
     state.position.initialized, state.position.next_chunk = True, state.num_init_chunks()
 
 
+def pin_threads(cfg: Config) -> None:
+    """Pin torch's CPU thread count to ``cfg.torch_threads``: its reductions split by thread count, so
+    only a fixed count repeats a run bit for bit on any machine (the Rust core is invariant already)."""
+    torch.set_num_threads(cfg.torch_threads)
+
+
 def run_slam(
     state: SlamState,
     run: RunDir,
@@ -152,10 +158,9 @@ def run_slam(
 ) -> SlamState:
     """Run (or continue, from ``state.position``) to the end; write the outputs into ``run``.
 
-    Pins torch's CPU thread count to ``cfg.torch_threads`` for the process: a run then repeats bit for bit
-    on any machine, fresh or resumed."""
+    Pins torch's threads for the process (:func:`pin_threads`), fresh or resumed."""
     cfg, n_chunks = state.cfg, state.data.n_chunks
-    torch.set_num_threads(cfg.torch_threads)
+    pin_threads(cfg)
 
     def note(record: StageRecord) -> None:
         run.log(describe(record))
