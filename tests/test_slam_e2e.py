@@ -164,6 +164,16 @@ def test_range_scale_without_a_range_meter_is_refused_before_the_run(seq_dir, tm
     assert "scale.source = 'range' needs range.csv" in capsys.readouterr().err
     assert main([*args, "--set", "scale.source=none", "--set", "scale.range_weight=1"]) == 2
     assert "scale.range_weight > 0 needs range.csv" in capsys.readouterr().err
+    meter = [
+        "--set",
+        "scale.source=none",
+        "--set",
+        "init.motion_search=true",
+        "--set",
+        "init.search_meter_advance=true",
+    ]
+    assert main([*args, *meter]) == 2
+    assert "init.search_meter_advance = true needs range.csv" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # no run directory was started
 
 

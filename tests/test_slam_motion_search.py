@@ -183,6 +183,41 @@ def test_a_winning_orbit_is_veered_towards_an_approach(synth, monkeypatch):
     assert torch.equal(found.best.twist[3:], orbit[3:])
 
 
+def test_with_the_meter_every_hypothesis_advances_as_fast_as_the_meter_closes(synth, monkeypatch):
+    """A swirl's start: an orbit about +y whose camera also closes in. The basis orbits do not approach;
+    with ``init.search_meter_advance`` every hypothesis is scored with the meter's advance, so the search
+    lands on the truth exactly, and the approaches of all sizes coincide into one."""
+    state = synth_state(
+        synth, f"gaussians.init_depth={DEPTH}", f"init.search_rate={RATE}", "init.search_polls=0"
+    )
+    m, _ = search_chunks(state)
+    t0, t1 = int(state.data.frames_us[0]), int(state.data.frames_us[m])
+    t = np.linspace(t0, t1, 2 * m + 1)
+    per_chunk = 0.04  # metres; the first reading is init_depth map units, so 2 m per unit
+    metres = 2.0 * DEPTH - per_chunk * np.arange(2 * m + 1) / 2
+    state = dataclasses.replace(state, data=dataclasses.replace(state.data, ranges=(t, metres)))
+    state = dataclasses.replace(state, cfg=dataclasses.replace(
+        state.cfg, init=dataclasses.replace(state.cfg.init, search_meter_advance=True)
+    ))  # fmt: skip
+    advance = per_chunk / 2.0
+    truth = next(h for h in directions(RATE, DEPTH) if h.name == "orbit +y").twist.clone()
+    truth[2] = advance
+
+    def fake_score(state, hyp, reporter):
+        return float(((hyp.twist - truth) / (RATE * DEPTH)).square().sum())
+
+    monkeypatch.setattr(motion_search, "score", fake_score)
+    without = dataclasses.replace(state.cfg.init, search_meter_advance=False)
+    plain = search_motion(dataclasses.replace(state, cfg=dataclasses.replace(state.cfg, init=without)))
+    found = search_motion(state)
+    assert found.best.name == "orbit +y (meter advance)"
+    assert torch.allclose(found.best.twist, truth) and found.score == pytest.approx(0.0, abs=1e-20)
+    assert all(h.twist[2] == pytest.approx(advance) for h in found.ranked)
+    # The approach and the retreat of every size are now one and the same motion, scored once.
+    assert len(found.tried) < len(plain.tried)
+    assert len({tuple(h.twist.tolist()) for h in found.ranked}) == len(found.ranked)
+
+
 def test_search_finds_the_minimum_of_a_known_score(synth, monkeypatch):
     """The search logic alone: a quadratic score around a motion outside the basis (an orbit about y at
     1.7× the nominal rate plus some roll and approach) is found from the basis hypotheses."""

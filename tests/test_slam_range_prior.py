@@ -25,6 +25,7 @@ from evgs.slam.range_prior import (  # noqa: E402
     closing_residuals,
     huber,
     huber_weights,
+    meter_advance,
     meter_jumps,
     principal_camera,
 )
@@ -264,6 +265,26 @@ def test_closing_rate_unit_is_set_by_the_seeding(synth):
         RangePrior.for_run(boxed, dataclasses.replace(data, ranges=(t, metres)))
     with pytest.raises(ValueError, match="first frame"):
         RangePrior.for_run(cfg, dataclasses.replace(data, ranges=(t[:1] - 1000, metres[:1])))
+
+
+def test_meter_advance_is_the_closing_rate_per_chunk_at_the_seeding_unit(synth):
+    seq, _ = synth
+    cfg = load_config("synthetic/tiny", ["data.event_contrast=0.2", "gaussians.init_depth=4"])
+    data = EventData.from_sequence(seq, cfg.data)
+    t0, chunk = int(data.frames_us[0]), float(np.diff(data.frames_us).mean())
+    # Two samples per chunk over the first three chunks and beyond, closing 0.05 m per sample: 0.1 m per
+    # chunk, 10 m at the first frame (4 map units, so 2.5 m per unit).
+    t = t0 + np.arange(12) * chunk / 2
+    metres = 10.0 - 0.05 * np.arange(12)
+    got = meter_advance(cfg, dataclasses.replace(data, ranges=(t, metres)), 3)
+    assert got == pytest.approx(0.1 / 2.5)
+    # A step where the ray crosses an edge onto a nearer surface says nothing about the advance: left out.
+    stepped = metres - np.where(np.arange(12) >= 3, 0.5, 0.0)
+    assert meter_advance(cfg, dataclasses.replace(data, ranges=(t, stepped)), 3) == pytest.approx(0.1 / 2.5)
+    # A meter that does not close: no advance.
+    assert meter_advance(cfg, dataclasses.replace(data, ranges=(t, np.full(12, 10.0))), 3) == 0.0
+    with pytest.raises(ValueError, match="search_meter_advance needs the sequence's range meter"):
+        meter_advance(cfg, dataclasses.replace(data, ranges=None), 3)
 
 
 def test_huber_is_quadratic_then_linear_and_its_irls_weights_agree():

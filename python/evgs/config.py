@@ -68,6 +68,7 @@ class InitConfig:
     search_veer: float
     search_smooth: bool
     search_range_weight: float
+    search_meter_advance: bool
     branches: int
     branch_frames: int
 

@@ -113,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
             "scale.range_weight > 0": cfg.scale.range_weight > 0,
             "scale.rate_weight > 0": cfg.scale.rate_weight > 0,
             "init.search_range_weight > 0": cfg.init.search_range_weight > 0,
+            "init.search_meter_advance = true": cfg.init.search_meter_advance and cfg.init.motion_search,
         }
         for key in (k for k, on in uses.items() if on and data.ranges is None):
             raise UserError(f"{folder}: {key} needs range.csv (a range meter); change {key.split()[0]}")

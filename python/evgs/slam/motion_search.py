@@ -25,7 +25,10 @@ behind orbits (docking_good). With ``init.search_veer``, the best two sizes of t
 best (an orbit or a translation) have their translation veered ± that angle towards each axis across
 it, and the best of all then ± half the angle: the basis moves along one axis, while a descent moves
 forward and sideways at once, and a swirl orbits and approaches at once (docs/ablations.md §15, §17,
-§21). The joint initialization starts from the winner.
+§21). With ``init.search_meter_advance`` every hypothesis instead advances along the optical axis as
+fast as the range meter closes over the searched chunks (:func:`evgs.slam.range_prior.meter_advance`):
+the events see that advance least of all, the meter directly, and the basis orbits have none
+(docs/ablations.md §41). The joint initialization starts from the winner.
 
 With ``init.search_polls`` > 0 a compass search in the same basis plus roll then adds what the family
 leaves out (roll, mixtures, an orbit centre off ``init_depth``), from the best sized direction or, with
@@ -60,6 +63,7 @@ from evgs.slam.optimize import (
     range_unit,
     run_stage,
 )
+from evgs.slam.range_prior import meter_advance
 from evgs.slam.state import SlamState, stage_seed
 from evgs.slam.trajectory import Trajectory
 
@@ -80,6 +84,14 @@ class Hypothesis:
 
     def scaled(self, factor: float) -> Hypothesis:
         return Hypothesis(f"{self.name} ×{factor:.3g}", self.twist * factor, self.family)
+
+    def advancing(self, per_frame: float) -> Hypothesis:
+        """This motion with its advance along the optical axis (the body-frame ``v_z``, constant under
+        ``knots``) set to ``per_frame``: the rest is left to the events."""
+        twist = self.twist.clone()
+        twist[2] = per_frame
+        tag = " (meter advance)"
+        return Hypothesis(self.name if self.name.endswith(tag) else self.name + tag, twist, self.family)
 
 
 def directions(rate: float, depth: float, tilt_deg: float = 0.0) -> Iterator[Hypothesis]:
@@ -198,14 +210,20 @@ def score(state: SlamState, hyp: Hypothesis, reporter: StageReporter | None) -> 
 
 class Scorer:
     """Scores each twist once (a compass sweep can come back to a scored twist) and keeps every
-    (hypothesis, score) tried in order."""
+    (hypothesis, score) tried in order. With an ``advance`` every hypothesis is scored, and kept, with
+    its advance along the optical axis set to it (:meth:`Hypothesis.advancing`); the approaches of
+    several sizes then coincide and are scored once."""
 
-    def __init__(self, state: SlamState, reporter: StageReporter | None) -> None:
-        self.state, self.reporter = state, reporter
+    def __init__(
+        self, state: SlamState, reporter: StageReporter | None, advance: float | None = None
+    ) -> None:
+        self.state, self.reporter, self.advance = state, reporter, advance
         self.tried: list[tuple[Hypothesis, float]] = []
         self._scores: dict[tuple[float, ...], float] = {}
 
     def __call__(self, h: Hypothesis) -> float:
+        if self.advance is not None:
+            h = h.advancing(self.advance)
         key = tuple(round(float(x), 12) for x in h.twist)
         if key not in self._scores:
             self._scores[key] = score(self.state, h, self.reporter)
@@ -255,7 +273,12 @@ def search_motion(state: SlamState, reporter: StageReporter | None = None) -> Se
     """The best-scoring hypothesis, and what the search tried."""
     cfg = state.cfg.init
     depth = state.cfg.gaussians.init_depth
-    trial = Scorer(state, reporter)
+    # The basis orbits do not approach, and the events see an advance along the optical axis least of
+    # all (docs/ablations.md §34, §41); where a range meter closes in, it says how fast.
+    advance = None
+    if cfg.search_meter_advance:
+        advance = meter_advance(state.cfg, state.data, search_chunks(state)[0])
+    trial = Scorer(state, reporter, advance)
     # Each direction at the nominal rate (and at half of it), and the best directions of each family then
     # sized over the ladder, before they are compared with each other and with no motion: at twice its
     # true rate the true direction can lose to wrong ones (docking_good's approach to every orbit, while
@@ -278,7 +301,7 @@ def search_motion(state: SlamState, reporter: StageReporter | None = None) -> Se
                 trial(h)
         for h in veered(trial.best()[0], cfg.search_veer / 2):
             trial(h)
-    if cfg.search_polls > 0 and trial.best()[0].name != "still":
+    if cfg.search_polls > 0 and trial.best()[0].family != "still":
         # Compass search in the basis of the hypotheses (orbit x/y, roll, translations), which the basis
         # motions alone miss: roll, mixtures and an orbit centre off init_depth, all of which the
         # magnitude would otherwise absorb. Sideways translations move the whole image: smaller steps.

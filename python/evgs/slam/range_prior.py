@@ -124,6 +124,41 @@ def huber_weights(q: Tensor) -> Tensor:
     return (HUBER / q.abs().clamp(min=HUBER)).to(q.dtype)
 
 
+def seed_unit(cfg: Config, data: EventData, why: str) -> float:
+    """Metres per map unit as the seeding sets them: the map is seeded around ``gaussians.init_depth`` on
+    the first camera's axis, so the meter's first reading (at or after the first frame) is that depth in
+    metres. ``why`` names the setting that needs it, for the error."""
+    if data.ranges is None:
+        raise ValueError(f"{why} needs the sequence's range meter (range.csv)")
+    t, r = valid_samples(*data.ranges)
+    first = np.searchsorted(t, int(data.frames_us[0]))
+    if cfg.gaussians.init_depth <= 0 or first == len(t):
+        raise ValueError(
+            f"{why} needs gaussians.init_depth > 0 (the seeding's depth on the first camera's axis, which "
+            "the meter's first reading sets in metres) and a range sample at or after the first frame "
+            f"({int(data.frames_us[0])} µs)"
+        )
+    return float(r[first]) / cfg.gaussians.init_depth
+
+
+def meter_advance(cfg: Config, data: EventData, chunks: int) -> float:
+    """Map units per chunk the camera advances along its optical axis over chunks ``0..chunks``, read
+    from how fast the range meter closes there (pairs across which it jumps left out, :func:`meter_jumps`),
+    at the seeding's unit (:func:`seed_unit`). Exact for a surface facing the camera; 0 without a steady
+    pair in those chunks."""
+    unit = seed_unit(cfg, data, "init.search_meter_advance")
+    t, r = valid_samples(*data.ranges)
+    t0, t1 = int(data.frames_us[0]), int(data.frames_us[chunks])
+    inside = (t >= t0) & (t <= t1)
+    t, r = t[inside], r[inside]
+    steady = ~meter_jumps(r)
+    if len(t) < 2 or not steady.any():
+        return 0.0
+    closed = float((r[:-1] - r[1:])[steady].sum())  # metres
+    elapsed = float(np.diff(t)[steady].sum())  # µs
+    return closed / elapsed * (t1 - t0) / chunks / unit
+
+
 @dataclass(frozen=True)
 class RangePrior:
     t_us: np.ndarray  # (S,) sample times, increasing
@@ -147,17 +182,8 @@ class RangePrior:
         if data.ranges is None:
             raise ValueError("a range weight > 0 needs the sequence's range meter (range.csv)")
         t, r = valid_samples(*data.ranges)
-        seed_unit = None
-        if cfg.scale.rate_weight > 0:
-            first = np.searchsorted(t, int(data.frames_us[0]))
-            if cfg.gaussians.init_depth <= 0 or first == len(t):
-                raise ValueError(
-                    "scale.rate_weight > 0 needs gaussians.init_depth > 0 (the seeding's depth on the first "
-                    "camera's axis, which the meter's first reading sets in metres) and a range sample "
-                    f"at or after the first frame ({int(data.frames_us[0])} µs)"
-                )
-            seed_unit = float(r[first]) / cfg.gaussians.init_depth
-        return cls(t, r, cfg.scale.min_alpha, data.camera, cfg.gaussians.background, seed_unit)
+        unit = seed_unit(cfg, data, "scale.rate_weight > 0") if cfg.scale.rate_weight > 0 else None
+        return cls(t, r, cfg.scale.min_alpha, data.camera, cfg.gaussians.background, unit)
 
     def samples(self, t_lo: int, t_hi: int, traj: Trajectory | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(t_us, metres)`` of the samples with ``t_lo <= t <= t_hi`` (and inside ``traj``'s knots)."""
