@@ -210,7 +210,7 @@ def test_with_the_meter_every_hypothesis_advances_as_fast_as_the_meter_closes(sy
     without = dataclasses.replace(state.cfg.init, search_meter_advance=False)
     plain = search_motion(dataclasses.replace(state, cfg=dataclasses.replace(state.cfg, init=without)))
     found = search_motion(state)
-    assert found.best.name == "orbit +y (meter advance)"
+    assert found.best.name == "orbit +y (meter advance 0.02)"
     assert torch.allclose(found.best.twist, truth) and found.score == pytest.approx(0.0, abs=1e-20)
     assert all(h.twist[2] == pytest.approx(advance) for h in found.ranked)
     # The approach and the retreat of every size are now one and the same motion, scored once.

@@ -87,11 +87,11 @@ class Hypothesis:
 
     def advancing(self, per_frame: float) -> Hypothesis:
         """This motion with its advance along the optical axis (the body-frame ``v_z``, constant under
-        ``knots``) set to ``per_frame``: the rest is left to the events."""
+        ``knots``) set to ``per_frame`` map units: the rest is left to the events. The name says so, once."""
         twist = self.twist.clone()
         twist[2] = per_frame
-        tag = " (meter advance)"
-        return Hypothesis(self.name if self.name.endswith(tag) else self.name + tag, twist, self.family)
+        name = self.name.split(" (meter advance ")[0]
+        return Hypothesis(f"{name} (meter advance {per_frame:.3g})", twist, self.family)
 
 
 def directions(rate: float, depth: float, tilt_deg: float = 0.0) -> Iterator[Hypothesis]:
