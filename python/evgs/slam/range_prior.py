@@ -124,13 +124,18 @@ def huber_weights(q: Tensor) -> Tensor:
     return (HUBER / q.abs().clamp(min=HUBER)).to(q.dtype)
 
 
-def seed_unit(cfg: Config, data: EventData, why: str) -> float:
-    """Metres per map unit as the seeding sets them: the map is seeded around ``gaussians.init_depth`` on
-    the first camera's axis, so the meter's first reading (at or after the first frame) is that depth in
-    metres. ``why`` names the setting that needs it, for the error."""
+def meter_samples(data: EventData, why: str) -> tuple[np.ndarray, np.ndarray]:
+    """The sequence's valid range samples (:func:`valid_samples`); ``why`` names what needs them, for the
+    error when the sequence has no meter."""
     if data.ranges is None:
         raise ValueError(f"{why} needs the sequence's range meter (range.csv)")
-    t, r = valid_samples(*data.ranges)
+    return valid_samples(*data.ranges)
+
+
+def seed_unit(cfg: Config, data: EventData, t: np.ndarray, r: np.ndarray, why: str) -> float:
+    """Metres per map unit as the seeding sets them: the map is seeded around ``gaussians.init_depth`` on
+    the first camera's axis, so the meter's first reading (of ``t``, ``r``, at or after the first frame)
+    is that depth in metres. ``why`` names the setting that needs it, for the error."""
     first = np.searchsorted(t, int(data.frames_us[0]))
     if cfg.gaussians.init_depth <= 0 or first == len(t):
         raise ValueError(
@@ -146,13 +151,14 @@ def meter_advance(cfg: Config, data: EventData, chunks: int) -> float:
     from how fast the range meter closes there (pairs across which it jumps left out, :func:`meter_jumps`),
     at the seeding's unit (:func:`seed_unit`). Exact for a surface facing the camera; 0 without a steady
     pair in those chunks."""
-    unit = seed_unit(cfg, data, "init.search_meter_advance")
-    t, r = valid_samples(*data.ranges)
+    why = "init.search_meter_advance"
+    t, r = meter_samples(data, why)
+    unit = seed_unit(cfg, data, t, r, why)
     t0, t1 = int(data.frames_us[0]), int(data.frames_us[chunks])
     inside = (t >= t0) & (t <= t1)
     t, r = t[inside], r[inside]
-    steady = ~meter_jumps(r)
-    if len(t) < 2 or not steady.any():
+    steady = ~meter_jumps(r)  # empty with fewer than two samples
+    if not steady.any():
         return 0.0
     closed = float((r[:-1] - r[1:])[steady].sum())  # metres
     elapsed = float(np.diff(t)[steady].sum())  # µs
@@ -179,10 +185,8 @@ class RangePrior:
         ``init.search_range_weight`` are all 0)."""
         if cfg.scale.range_weight == 0 and cfg.scale.rate_weight == 0 and cfg.init.search_range_weight == 0:
             return None
-        if data.ranges is None:
-            raise ValueError("a range weight > 0 needs the sequence's range meter (range.csv)")
-        t, r = valid_samples(*data.ranges)
-        unit = seed_unit(cfg, data, "scale.rate_weight > 0") if cfg.scale.rate_weight > 0 else None
+        t, r = meter_samples(data, "a range weight > 0")
+        unit = seed_unit(cfg, data, t, r, "scale.rate_weight > 0") if cfg.scale.rate_weight > 0 else None
         return cls(t, r, cfg.scale.min_alpha, data.camera, cfg.gaussians.background, unit)
 
     def samples(self, t_lo: int, t_hi: int, traj: Trajectory | None = None) -> tuple[np.ndarray, np.ndarray]:
