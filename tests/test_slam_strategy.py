@@ -13,7 +13,6 @@ from evgs.slam.strategy import (
     DefaultStrategy,
     duplicate,
     gaussians_from_view,
-    median_depth,
     remove,
     reset_opacity,
     split,
@@ -234,10 +233,3 @@ def test_gaussians_from_view_event_threshold_and_few_candidates():
     )  # fmt: skip
     assert new["means"].shape == (1, 3)
     assert CAM.fx * new["means"][0, 0] + CAM.cx == pytest.approx(9.5)
-
-
-def test_median_depth():
-    alpha = torch.tensor([[1.0, 0.8, 0.1], [0.0, 0.9, 1.0]])
-    depth = torch.tensor([[2.0, 1.6, 9.0], [0.0, 4.5, 3.0]])  # D = z·V
-    assert median_depth(depth, alpha) == pytest.approx(2.0)
-    assert median_depth(depth, torch.zeros_like(alpha)) is None

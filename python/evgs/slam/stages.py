@@ -21,11 +21,12 @@ from collections.abc import Callable
 import torch
 
 from evgs.render import render
+from evgs.slam.depth import median_depth
 from evgs.slam.motion_search import Hypothesis, SearchResult, search_motion
 from evgs.slam.optimize import StageReporter, StageSpec, run_stage
 from evgs.slam.pose_solver import lm_track
 from evgs.slam.state import SlamState, StageRecord, stage_seed
-from evgs.slam.strategy import DefaultStrategy, gaussians_from_view, median_depth
+from evgs.slam.strategy import DefaultStrategy, gaussians_from_view
 
 
 def _seq_frame(state: SlamState, knot: int) -> int:
@@ -102,7 +103,8 @@ def add_gaussians_from_newest_view(state: SlamState, k: int) -> int:
     back-projected at ``mapping.new_gaussian_depth`` or else the view's median rendered depth."""
     cfg, data = state.cfg, state.data
     out = render_knots(state, [k + 1])
-    depth = cfg.mapping.new_gaussian_depth or median_depth(out.depth[0], out.alpha[0])
+    median = median_depth(out.depth[0], out.alpha[0])
+    depth = cfg.mapping.new_gaussian_depth or (None if median is None else float(median))
     if depth is None or cfg.mapping.max_new_gaussians == 0:
         return 0
     s, e = data.chunks[k]

@@ -188,14 +188,6 @@ class DefaultStrategy:
         self.grad2d, self.count = edit_rows(gaussians, optimizer, keep, extra, aux=(self.grad2d, self.count))
 
 
-def median_depth(depth: Tensor, alpha: Tensor, min_alpha: float = 0.5) -> float | None:
-    """Median of the mean depth ``D/V`` over pixels the scene covers (``V > min_alpha``), or None."""
-    covered = alpha > min_alpha
-    if not torch.any(covered):
-        return None
-    return float((depth[covered] / alpha[covered]).median())
-
-
 def gaussians_from_view(
     alpha: Tensor,
     T_wc: Tensor,
