@@ -133,6 +133,15 @@ def test_range_scale_takes_the_closing_rate_where_it_explains_the_meter(synth):
     bumpy = approach + np.where(np.arange(len(approach)) % 2, 0.01, -0.01)
     moved = dataclasses.replace(state, data=dataclasses.replace(state.data, ranges=(scene.frames_us, bumpy)))
     assert estimate_scale(moved, strict).source == "range, first surface"
+    # A swirl: the ray sweeps the target's relief as the camera closes in, and the advances explain less
+    # than 0.9 of the meter but far more than an orbit's ≤ 0.24: still the closing rate (docs §42).
+    wobble = 0.25 * np.abs(np.diff(approach)).mean()
+    swirl = approach + np.where(np.arange(len(approach)) % 2, wobble, -wobble)
+    moved = dataclasses.replace(state, data=dataclasses.replace(state.data, ranges=(scene.frames_us, swirl)))
+    fit = closing_scale(moved.traj, scene.frames_us, swirl)
+    assert fit is not None and 0.5 < fit.explained < 0.9
+    est = estimate_scale(moved, cfg)
+    assert est.source.startswith("range, closing rate") and est.scale == pytest.approx(fit.scale)
 
 
 def flat_gaussian(depth: float, opacity: float, lateral: float = 0.0) -> dict[str, list]:
