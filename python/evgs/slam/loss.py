@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from evgs.config import LossConfig
-from evgs.slam.depth import mean_depth, median_depth
+from evgs.slam.depth import mean_depth
 
 
 def linlog(x: Tensor, threshold: float = 20.0) -> Tensor:
@@ -144,11 +144,12 @@ def depth_variation(depth: Tensor, alpha: Tensor, min_alpha: float = 0.5) -> Ten
     against depth, docs/ablations.md §14, §35). Relative, so the map's arbitrary scale does not weigh;
     L1, so a true step in depth (a panel's edge in front of the bus) costs only its height.
     """
-    median = median_depth(depth, alpha, min_alpha)
-    if median is None:
-        return depth.sum() * 0
     mean, opaque = mean_depth(depth, alpha, min_alpha)
-    mean = mean / median
+    if not bool(opaque.any()):
+        return depth.sum() * 0
+    # the median of this very tensor, not median_depth's own copy: one graph, so the gradient's sums run
+    # in one order (a last-bit change here turns the default run's search to another motion, §42)
+    mean = mean / mean[opaque].median()
     dx = (mean[..., :, 1:] - mean[..., :, :-1]).abs()[opaque[..., :, 1:] & opaque[..., :, :-1]]
     dy = (mean[..., 1:, :] - mean[..., :-1, :]).abs()[opaque[..., 1:, :] & opaque[..., :-1, :]]
     return sum((d.mean() for d in (dx, dy) if d.numel()), depth.sum() * 0)
