@@ -216,6 +216,8 @@ def test_with_the_meter_every_hypothesis_advances_as_fast_as_the_meter_closes(sy
     # The approach and the retreat of every size are now one and the same motion, scored once.
     assert len(found.tried) < len(plain.tried)
     assert len({tuple(h.twist.tolist()) for h in found.ranked}) == len(found.ranked)
+    # Sized after the meter set its advance, a motion keeps its size in its name.
+    assert found.best.scaled(0.5).advancing(advance).name == "orbit +y ×0.5 (meter advance 0.02)"
 
 
 def test_search_finds_the_minimum_of_a_known_score(synth, monkeypatch):

@@ -47,6 +47,7 @@ the image centre empty (docking_low, docs/ablations.md §28).
 from __future__ import annotations
 
 import dataclasses
+import re
 from collections.abc import Iterator
 from typing import Literal
 
@@ -90,7 +91,7 @@ class Hypothesis:
         ``knots``) set to ``per_frame`` map units: the rest is left to the events. The name says so, once."""
         twist = self.twist.clone()
         twist[2] = per_frame
-        name = self.name.split(" (meter advance ")[0]
+        name = re.sub(r" \(meter advance [^)]*\)", "", self.name)  # keeps a later "×f" of the rate
         return Hypothesis(f"{name} (meter advance {per_frame:.3g})", twist, self.family)
 
 
