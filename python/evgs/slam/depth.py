@@ -1,6 +1,6 @@
-"""The rendered mean depth ``D̄ = D / α`` and its median over the opaque pixels: the view's depth scale, which
-the relief prior divides by (:func:`evgs.slam.loss.depth_variation`, scale-free) and new Gaussians are
-back-projected at (:func:`evgs.slam.stages.add_gaussians_from_newest_view`)."""
+"""The rendered mean depth ``D̄ = D / α`` over the opaque pixels, which the relief prior makes scale-free by
+its median (:func:`evgs.slam.loss.depth_variation`), and that median as a number: the view's depth, at
+which new Gaussians are back-projected (:func:`evgs.slam.stages.add_gaussians_from_newest_view`)."""
 
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ def mean_depth(depth: Tensor, alpha: Tensor, min_alpha: float = 0.5) -> tuple[Te
     return depth / alpha.clamp(min=min_alpha), alpha > min_alpha
 
 
-def median_depth(depth: Tensor, alpha: Tensor, min_alpha: float = 0.5) -> Tensor | None:
-    """Median mean depth over the opaque pixels (differentiable), or None when no pixel is opaque."""
+def median_depth(depth: Tensor, alpha: Tensor, min_alpha: float = 0.5) -> float | None:
+    """Median mean depth over the opaque pixels, or None when no pixel is opaque."""
     mean, opaque = mean_depth(depth, alpha, min_alpha)
     if not bool(opaque.any()):
         return None
-    return mean[opaque].median()
+    return float(mean[opaque].median())

@@ -102,10 +102,11 @@ def add_gaussians_from_newest_view(state: SlamState, k: int) -> int:
     """New Gaussians at low-alpha, event-carrying pixels of knot ``k+1``'s view (chunk ``k``'s events);
     back-projected at ``mapping.new_gaussian_depth`` or else the view's median rendered depth."""
     cfg, data = state.cfg, state.data
+    if cfg.mapping.max_new_gaussians == 0:  # the orbit configs: no render needed
+        return 0
     out = render_knots(state, [k + 1])
-    median = median_depth(out.depth[0], out.alpha[0])
-    depth = cfg.mapping.new_gaussian_depth or (None if median is None else float(median))
-    if depth is None or cfg.mapping.max_new_gaussians == 0:
+    depth = cfg.mapping.new_gaussian_depth or median_depth(out.depth[0], out.alpha[0])
+    if depth is None:
         return 0
     s, e = data.chunks[k]
     events = data.frames_of(s[None], e[None])[0]
