@@ -1,6 +1,13 @@
 """Map quality measured apart from pose estimation (a diagnostic benchmark, not a test).
 
-    PYTHONPATH=python python benches/slam_oracle.py [--seq synthetic/orbit_ambient] [--track 6] [--set K=V]
+    PYTHONPATH=python python benches/slam_oracle.py [--seq synthetic/orbit_ambient] [--track 6]
+        [--rates 1,0.5,0.25] [--set K=V]
+
+0. With ``--rates``: the motion search's refit (``init.search_steps`` on the seeded map, the knots
+   frozen) on the truth's own first knots, its motion scaled by each rate, scored as the search scores
+   a hypothesis; beside it the cosine between the measured and the predicted event frames and the
+   squared error's best gain ``⟨E, Ê⟩ / ‖Ê‖²`` (below 1: the prediction is stronger than the events).
+   Where a smaller rate scores better, the search cannot find the truth (docs/ablations.md §43).
 
 1. Initialization with the ground-truth knots, frozen (translations scaled by ``init_depth`` / the
    distance to the first frame's range sample, so the map sits where a real run would put it): the map
@@ -29,7 +36,8 @@ from evgs.data.sequence import Sequence
 from evgs.render import render
 from evgs.slam.lie import se3_exp, se3_inverse, se3_log
 from evgs.slam.loss import pointwise_error, predicted_events
-from evgs.slam.optimize import StageSpec, run_stage
+from evgs.slam.motion_search import EVAL_WINDOWS, fit, search_chunks
+from evgs.slam.optimize import StageSpec, fixed_window_loss, render_windows, run_stage
 from evgs.slam.pipeline import new_state, pin_threads
 from evgs.slam.stages import set_brightness_reference, track
 from evgs.slam.state import SlamState, stage_seed
@@ -76,10 +84,33 @@ def landscape(state: SlamState, rel: torch.Tensor, k: int, windows: int = 3) -> 
     return np.array(out)
 
 
+def search_refits(state: SlamState, rel: torch.Tensor, rates: list[float]) -> Table:
+    """Step 0: the search's refit and score on the truth's knots at each rate (``state`` untouched)."""
+    data, cfg = state.data, state.cfg
+    m, _ = search_chunks(state)
+    seed, span = stage_seed(cfg.seed, "search", 0), data.span(0, m)
+    table = Table(title=f"the search's refit on the truth's first {m} chunks, its motion × rate")
+    for col in ("rate", "score", "cos(E, Ê)", "best gain"):
+        table.add_column(col, justify="right")
+    for rate in rates:
+        trial = fit(state, se3_exp(rate * se3_log(rel[: m + 1])), None)
+        sampler, ee, pp, ep = data.sampler(span, seed), 0.0, 0.0, 0.0
+        for _ in range(EVAL_WINDOWS):  # the windows fixed_window_loss scores
+            win = data.windows(sampler, 1, 1)
+            with torch.no_grad():
+                gray = render_windows(trial, win, data.camera).color[..., 0]
+            e, p = win.frames.double(), predicted_events(gray[:1], gray[1:], cfg.loss).double()
+            ee, pp, ep = ee + float((e * e).sum()), pp + float((p * p).sum()), ep + float((e * p).sum())
+        score = fixed_window_loss(trial, span, seed, EVAL_WINDOWS)
+        table.add_row(f"{rate:g}", f"{score:.5f}", f"{ep / np.sqrt(ee * pp):.3f}", f"{ep / pp:.3f}")
+    return table
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seq", default="synthetic/orbit_ambient")
     ap.add_argument("--track", type=int, default=6, help="new chunks to track after the init")
+    ap.add_argument("--rates", default="", help="comma-separated rates for step 0 (none: skipped)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     args = ap.parse_args()
     console = Console()
@@ -90,6 +121,8 @@ def main() -> None:
     pin_threads(cfg)  # as run_slam does
     state = new_state(cfg, data)
     rel = gt_knots(seq, data, cfg.gaussians.init_depth)
+    if args.rates:
+        console.print(search_refits(state, rel, [float(r) for r in args.rates.split(",")]))
     m = state.num_init_chunks()
     with torch.no_grad():
         state.traj.base.copy_(rel[: m + 1])

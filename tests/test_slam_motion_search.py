@@ -357,7 +357,7 @@ def test_smooth_refits_run_a_fixed_schedule_and_score_nearby_motions_alike(synth
     m = state.num_init_chunks()
     P = torch.as_tensor(scene.poses)
     truth = Hypothesis("truth", se3_log(se3_inverse(P[0]) @ P[m]) / m)
-    trial = motion_search.fit(state, truth, None)
+    trial = motion_search.fit(state, truth.knots(m + 1), None)
     assert len(trial.gaussians) == len(state.gaussians)
     assert trial.history[-1].iterations == 60 and trial.history[-1].pruned_blockers == 0
     s = {f: score(state, truth.scaled(f), None) for f in (0.98, 1.0, 1.02)}

@@ -146,15 +146,16 @@ def search_chunks(state: SlamState) -> tuple[int, int]:
     return m, min(cfg.search_holdout, n - m)
 
 
-def fit(state: SlamState, hyp: Hypothesis, reporter: StageReporter | None) -> SlamState:
-    """A copy of ``state`` whose seeded map was optimised for ``init.search_steps`` iterations on
-    ``hyp``'s frozen knots; ``state`` itself is left as it was. Every fit draws the same windows and
-    random numbers, so scores differ by the hypothesis alone."""
+def fit(state: SlamState, knots: Tensor, reporter: StageReporter | None) -> SlamState:
+    """A copy of ``state`` whose seeded map was optimised for ``init.search_steps`` iterations on the
+    frozen ``knots`` (a hypothesis' first ``init.search_frames`` + 1; or the truth's, in
+    ``benches/slam_oracle.py``); ``state`` itself is left as it was. Every fit draws the same windows
+    and random numbers, so scores differ by the knots alone."""
     cfg, data = state.cfg, state.data
     m, _ = search_chunks(state)
     trial = dataclasses.replace(
         state,
-        traj=Trajectory(data.frames_us[: m + 1], hyp.knots(m + 1), cfg.trajectory.interpolation),
+        traj=Trajectory(data.frames_us[: m + 1], knots, cfg.trajectory.interpolation),
         gaussians=type(state.gaussians).from_state(state.gaussians.state()),
         generator=torch.Generator().manual_seed(stage_seed(cfg.seed, "search", m)),
         history=[],
@@ -192,7 +193,7 @@ def score(state: SlamState, hyp: Hypothesis, reporter: StageReporter | None) -> 
     target not yet mapped favours too little motion, which the fitted chunks do not."""
     cfg, data = state.cfg, state.data
     m, holdout = search_chunks(state)
-    trial = fit(state, hyp, reporter)
+    trial = fit(state, hyp.knots(m + 1), reporter)
     spans = [data.span(0, m)]
     if holdout:  # the fitted knots, carried on over the chunks ahead
         n = m + holdout
