@@ -35,9 +35,9 @@ from evgs.config import load_config
 from evgs.data.sequence import Sequence
 from evgs.render import render
 from evgs.slam.lie import se3_exp, se3_inverse, se3_log
-from evgs.slam.loss import pointwise_error, predicted_events
+from evgs.slam.loss import event_loss, pointwise_error, predicted_events
 from evgs.slam.motion_search import EVAL_WINDOWS, fit, search_chunks
-from evgs.slam.optimize import StageSpec, fixed_window_loss, render_windows, run_stage
+from evgs.slam.optimize import StageSpec, fixed_windows, run_stage
 from evgs.slam.pipeline import new_state, pin_threads
 from evgs.slam.stages import set_brightness_reference, track
 from evgs.slam.state import SlamState, stage_seed
@@ -94,14 +94,12 @@ def search_refits(state: SlamState, rel: torch.Tensor, rates: list[float]) -> Ta
         table.add_column(col, justify="right")
     for rate in rates:
         trial = fit(state, se3_exp(rate * se3_log(rel[: m + 1])), None)
-        sampler, ee, pp, ep = data.sampler(span, seed), 0.0, 0.0, 0.0
-        for _ in range(EVAL_WINDOWS):  # the windows fixed_window_loss scores
-            win = data.windows(sampler, 1, 1)
-            with torch.no_grad():
-                gray = render_windows(trial, win, data.camera).color[..., 0]
+        losses, ee, pp, ep = [], 0.0, 0.0, 0.0
+        for win, gray in fixed_windows(trial, span, seed, EVAL_WINDOWS):  # as fixed_window_loss scores
+            losses.append(float(event_loss(win.frames, gray[:1], gray[1:], cfg.loss).total))
             e, p = win.frames.double(), predicted_events(gray[:1], gray[1:], cfg.loss).double()
             ee, pp, ep = ee + float((e * e).sum()), pp + float((p * p).sum()), ep + float((e * p).sum())
-        score = fixed_window_loss(trial, span, seed, EVAL_WINDOWS)
+        score = float(np.mean(losses))
         table.add_row(f"{rate:g}", f"{score:.5f}", f"{ep / np.sqrt(ee * pp):.3f}", f"{ep / pp:.3f}")
     return table
 

@@ -14,7 +14,7 @@ mean loss of the last ``patience`` iterations improves on the block before by le
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -92,17 +92,27 @@ def render_windows(state: SlamState, win: Windows, camera: Camera) -> RenderResu
 
 
 @torch.no_grad()
-def fixed_window_loss(state: SlamState, span: tuple[int, int], seed: int, windows: int) -> float:
-    """Mean loss (eq. 8) of ``state``'s map and trajectory on ``windows`` single windows of the event index
-    range ``span``, drawn by a sampler seeded with ``seed``: the same windows whatever the state, so that
-    states built on the same data (motion hypotheses, branches) compare on equal terms."""
+def fixed_windows(
+    state: SlamState, span: tuple[int, int], seed: int, windows: int
+) -> Iterator[tuple[Windows, Tensor]]:
+    """``windows`` single windows of the event index range ``span``, drawn by a sampler seeded with
+    ``seed`` (the same windows whatever the state), each with ``state``'s gray renders (2, H, W) at its
+    start and end (no gradient)."""
     data = state.data
     sampler = data.sampler(span, seed)
-    losses = []
     for _ in range(windows):
         win = data.windows(sampler, 1, 1)
-        gray = render_windows(state, win, data.camera).color[..., 0]
-        losses.append(float(event_loss(win.frames, gray[:1], gray[1:], state.cfg.loss).total))
+        with torch.no_grad():
+            yield win, render_windows(state, win, data.camera).color[..., 0]
+
+
+def fixed_window_loss(state: SlamState, span: tuple[int, int], seed: int, windows: int) -> float:
+    """Mean loss (eq. 8) of ``state``'s map and trajectory on :func:`fixed_windows`, so that states built on
+    the same data (motion hypotheses, branches) compare on equal terms."""
+    losses = [
+        float(event_loss(win.frames, gray[:1], gray[1:], state.cfg.loss).total)
+        for win, gray in fixed_windows(state, span, seed, windows)
+    ]
     return float(np.mean(losses))
 
 
