@@ -102,8 +102,7 @@ def fixed_windows(
     sampler = data.sampler(span, seed)
     for _ in range(windows):
         win = data.windows(sampler, 1, 1)
-        with torch.no_grad():
-            yield win, render_windows(state, win, data.camera).color[..., 0]
+        yield win, render_windows(state, win, data.camera).color[..., 0]
 
 
 def fixed_window_loss(state: SlamState, span: tuple[int, int], seed: int, windows: int) -> float:
