@@ -21,9 +21,10 @@ from evgs.slam.metric_scale import (  # noqa: E402
     estimate_scale,
     first_surface,
     map_extent,
+    range_agreement,
     range_scale,
 )
-from evgs.slam.pipeline import write_metric_scale  # noqa: E402
+from evgs.slam.pipeline import check_range_meter, write_metric_scale  # noqa: E402
 from evgs.slam.run_dir import RunDir  # noqa: E402
 from evgs.slam.state import SlamState  # noqa: E402
 from evgs.slam.trajectory import Trajectory  # noqa: E402
@@ -82,6 +83,42 @@ def test_range_meter_recovers_the_scale(synth):
         range_scale(state, scene.frames_us - 10**9, ranges, 0.5)
     with pytest.raises(ValueError, match="covers the image centre"):
         range_scale(state, scene.frames_us, ranges, 1.1)
+
+
+def test_range_agreement_sees_the_map_drift_from_the_meter(synth, tmp_path):
+    _, scene = synth
+    state, ranges = state_in_map_units(synth)
+    agreement = range_agreement(state, scene.frames_us, ranges, 0.5)
+    assert agreement.covered.all() and len(agreement.t_us) >= 6
+    np.testing.assert_allclose(agreement.ratios, TRUE_SCALE, rtol=1e-4)
+    assert abs(agreement.drift()) < 1e-4
+    # The meter reads 20 % farther over the second half: the map ends 20 % nearer than it says.
+    half = len(ranges) // 2
+    farther = np.where(np.arange(len(ranges)) < half, 1.0, 1.2) * ranges
+    assert range_agreement(state, scene.frames_us, farther, 0.5).drift() == pytest.approx(0.2, rel=1e-3)
+    # A map that covers no ray: nothing to compare, and a run says so.
+    assert np.isnan(range_agreement(state, scene.frames_us, ranges, 1.1).drift())
+    bare = dataclasses.replace(
+        state, data=dataclasses.replace(state.data, ranges=(scene.frames_us, ranges)), metric={},
+        cfg=load_config("synthetic/tiny", ["scale.min_alpha=1.1"]),
+    )  # fmt: skip
+    run = RunDir.create(tmp_path / "bare", "synth", state.cfg)
+    check_range_meter(bare, run, None)
+    assert bare.metric["range_map_samples"] == 0 and np.isnan(bare.metric["range_map_drift"])
+    assert not (run.diagnostics / "range_meter.png").exists()
+    assert "too few to compare" in (run.root / "log.txt").read_text()
+    # In a run: the figure, the metrics and the log line, whatever scale.source is; the map's first
+    # surface agrees with the meter at the map's scale.
+    metered = dataclasses.replace(
+        state, data=dataclasses.replace(state.data, ranges=(scene.frames_us, ranges)), metric={}
+    )
+    run = RunDir.create(tmp_path, "synth", state.cfg)
+    check_range_meter(metered, run, None)
+    assert metered.metric["range_map_ratio"] == pytest.approx(TRUE_SCALE, rel=1e-4)
+    assert abs(metered.metric["range_map_drift"]) < 1e-4
+    assert metered.metric["range_map_samples"] == len(ranges)
+    assert (run.diagnostics / "range_meter.png").stat().st_size > 0
+    assert "0.0% from the run's first fifth" in (run.root / "log.txt").read_text()
 
 
 def test_closing_rate_scale_fits_the_advance_and_says_how_much_it_explains():

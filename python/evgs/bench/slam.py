@@ -232,6 +232,8 @@ def evaluate(run_dir: Path, images: bool) -> Row:
     scale = metrics.get("metric_scale")
     row["metric_scale"] = float(scale) if scale is not None else math.nan
     row["scale_err_pct"] = abs(s["scale"] - 1.0) * 100.0 if scale is not None else math.nan
+    drift = metrics.get("range_map_drift")  # null in metrics.json when it could not be measured
+    row["range_map_drift_pct"] = float(drift) * 100.0 if drift is not None else math.nan
     return row
 
 

@@ -20,6 +20,7 @@ RUN_COLUMNS = [
     "preset", "seed", "lighting", "status", "error", "run_dir", "frames", "ate_rmse", "extent", "ate_pct",
     "drift_deg", "ate_x", "ate_y", "ate_z", "rpe_trans_rmse", "rpe_rot_rmse_deg", "psnr_db", "ssim",
     "lpips", "s_per_frame", "wall_s", "peak_rss_gib", "metric_scale", "sim3_scale", "scale_err_pct",
+    "range_map_drift_pct",
 ]  # fmt: skip
 
 
@@ -45,6 +46,7 @@ METRICS = [
     Metric("s_per_frame", "s/frame", ".2f"),
     Metric("peak_rss_gib", "Peak GiB", ".2f"),
     Metric("scale_err_pct", "Scale err %", ".1f"),
+    Metric("range_map_drift_pct", "Map drift %", ".1f"),
 ]
 
 

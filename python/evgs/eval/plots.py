@@ -102,6 +102,29 @@ def plot_velocity(
     return _save(fig, path)
 
 
+def plot_range_agreement(
+    t: np.ndarray, ranges: np.ndarray, depth: np.ndarray, drift: float, path: Path
+) -> Path:
+    """The range meter against the map's first surface on the principal ray (``depth``, NaN where the map
+    does not cover it) vs time, the map read at the median ratio; below, their ratio over that median."""
+    covered = np.isfinite(depth)
+    unit = float(np.median(ranges[covered] / depth[covered])) if covered.any() else 1.0
+    fig = Figure(figsize=(7, 5))
+    top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=(2, 1))
+    top.plot(t, ranges, color="black", label="range meter")
+    top.plot(t, depth * unit, color="tab:red", label=f"map's first surface × {unit:.4g} (median ratio)")
+    top.set_ylabel("distance [m]")
+    top.legend(loc="best")
+    top.set_title(f"Range meter against the map — drift {drift:+.1%} from the first fifth to the last")
+    bottom.plot(t, ranges / (depth * unit), color="tab:blue")
+    bottom.axhline(1.0, color="gray", linewidth=0.8)
+    bottom.set_ylabel("ratio / median")
+    bottom.set_xlabel("time [s]")
+    for ax in (top, bottom):
+        ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
 def plot_run(ev: RunEvaluation, out_dir: Path) -> dict[str, Path]:
     """All figures of a :class:`evgs.eval.run.RunEvaluation` into ``out_dir``; returns name → path."""
     tr = ev.traj

@@ -119,17 +119,58 @@ def closing_scale(traj: Trajectory, t_us: np.ndarray, ranges: np.ndarray) -> Clo
     return ClosingFit(s, explained, len(t_us), int((~steady).sum()))
 
 
+@dataclass(frozen=True)
+class RangeAgreement:
+    """The meter against the map along the run: at each range sample inside it, the range and the map's
+    first surface on the principal ray (NaN where the map covers the ray less than ``min_alpha``)."""
+
+    t_us: np.ndarray  # (S,)
+    ranges: np.ndarray  # (S,) metres
+    depth: np.ndarray  # (S,) the run's units
+
+    @property
+    def covered(self) -> np.ndarray:
+        return np.isfinite(self.depth)
+
+    @property
+    def ratios(self) -> np.ndarray:
+        """``range / depth`` at the covered samples, in time order."""
+        return self.ranges[self.covered] / self.depth[self.covered]
+
+    def drift(self) -> float:
+        """Median ratio over the last fifth of the covered samples against the first fifth's, minus 1.
+
+        0 when the camera's distance to the map follows the meter's over the run. The events see a
+        target's looming weakly, so a run can close in too slowly (or drift along the axis) while its
+        map still explains every view: the map then ends farther (negative) or nearer (positive) than the
+        meter says, which no ground truth is needed to see (docs/ablations.md §47). NaN with fewer than
+        two covered samples."""
+        r = self.ratios
+        if len(r) < 2:
+            return math.nan
+        k = max(1, len(r) // 5)
+        return float(np.median(r[-k:]) / np.median(r[:k]) - 1.0)
+
+
+@torch.no_grad()
+def range_agreement(
+    state: SlamState, t_us: np.ndarray, ranges: np.ndarray, min_alpha: float
+) -> RangeAgreement:
+    """:class:`RangeAgreement` of the valid samples inside the run (an error if none)."""
+    t_us, ranges = samples_inside(state.traj, t_us, ranges)
+    opacity, depth = first_surface(state.gaussians, state.traj.pose_at(t_us))
+    depth = torch.where(opacity >= min_alpha, depth, torch.full_like(depth, math.nan))
+    return RangeAgreement(t_us, ranges, depth.numpy())
+
+
 def range_scale(state: SlamState, t_us: np.ndarray, ranges: np.ndarray, min_alpha: float) -> ScaleEstimate:
     """Median of ``range / first-surface depth`` on the principal ray over the samples inside the run."""
-    t_us, ranges = samples_inside(state.traj, t_us, ranges)
-    with torch.no_grad():
-        opacity, depth = first_surface(state.gaussians, state.traj.pose_at(t_us))
-    covered = (opacity >= min_alpha).numpy()
-    ratios = ranges[covered] / depth.numpy()[covered]
+    agreement = range_agreement(state, t_us, ranges, min_alpha)
+    ratios = agreement.ratios
     if not len(ratios):
         raise ValueError(
             f"scale: the map covers the image centre (opacity ≥ {min_alpha:g}) at none of the "
-            f"{len(t_us)} range samples; lower scale.min_alpha or use scale.source = 'target_size'"
+            f"{len(agreement.t_us)} range samples; lower scale.min_alpha or use scale.source = 'target_size'"
         )
     return ScaleEstimate(float(np.median(ratios)), len(ratios), "range, first surface")
 

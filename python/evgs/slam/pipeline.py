@@ -19,11 +19,12 @@ from scipy import ndimage
 from torch import Tensor
 
 from evgs.config import Config, GaussiansConfig
+from evgs.eval.plots import plot_range_agreement
 from evgs.slam import checkpoint
 from evgs.slam.branches import run_branches
 from evgs.slam.gaussians import Gaussians
 from evgs.slam.guards import BrightnessAnchor
-from evgs.slam.metric_scale import apply_scale, estimate_scale
+from evgs.slam.metric_scale import apply_scale, estimate_scale, range_agreement
 from evgs.slam.optimize import StageReporter
 from evgs.slam.range_prior import RangePrior
 from evgs.slam.run_dir import RunDir
@@ -120,6 +121,40 @@ def write_metric_scale(state: SlamState, run: RunDir, log: Callable[[str], None]
         log(message)
 
 
+def check_range_meter(state: SlamState, run: RunDir, log: Callable[[str], None] | None) -> None:
+    """With a range meter: how the map's distance from the cameras keeps to the meter's over the run,
+    a check that needs no ground truth, whatever ``scale.source`` is (``diagnostics/range_meter.png``;
+    ``metrics.json``: ``range_map_drift``, and ``range_map_ratio``, the median of range over the map's
+    first surface, which is 1 when the map agrees with a trajectory made metric by the closing rate)."""
+    if state.data.ranges is None:
+        return
+    try:
+        agreement = range_agreement(state, *state.data.ranges, state.cfg.scale.min_alpha)
+    except ValueError:  # no sample inside the run: nothing to compare
+        return
+    drift, ratios = agreement.drift(), agreement.ratios
+    state.metric |= {
+        "range_map_ratio": float(np.median(ratios)) if len(ratios) else float("nan"),
+        "range_map_drift": drift,
+        "range_map_samples": len(ratios),
+    }
+    if len(ratios) < 2:
+        message = (
+            f"range meter against the map: the map covers the principal ray at {len(ratios)} of the "
+            f"{len(agreement.t_us)} samples, too few to compare"
+        )
+    else:
+        t = (agreement.t_us - agreement.t_us[0]) / 1e6
+        plot_range_agreement(t, agreement.ranges, agreement.depth, drift, run.diagnostics / "range_meter.png")
+        message = (
+            f"range meter against the map's first surface: {drift:+.1%} from the run's first fifth to its "
+            "last (0: the map keeps the meter's distance; docs/ablations.md §47)"
+        )
+    run.log(message)
+    if log is not None:
+        log(message)
+
+
 def adopt(state: SlamState, other: SlamState) -> None:
     """Make ``state`` (the caller's object) carry ``other``'s contents."""
     for f in dataclasses.fields(state):
@@ -195,5 +230,6 @@ def run_slam(
         run.log(f"interrupted; checkpoint at chunk {last['position']['next_chunk']} written")
         raise
     write_metric_scale(state, run, log)
+    check_range_meter(state, run, log)
     run.write_outputs(state)
     return state
