@@ -103,12 +103,10 @@ def plot_velocity(
 
 
 def plot_range_agreement(
-    t: np.ndarray, ranges: np.ndarray, depth: np.ndarray, drift: float, path: Path
+    t: np.ndarray, ranges: np.ndarray, depth: np.ndarray, unit: float, drift: float, path: Path
 ) -> Path:
     """The range meter against the map's first surface on the principal ray (``depth``, NaN where the map
-    does not cover it) vs time, the map read at the median ratio; below, their ratio over that median."""
-    covered = np.isfinite(depth)
-    unit = float(np.median(ranges[covered] / depth[covered])) if covered.any() else 1.0
+    does not cover it) vs time, the map read at ``unit`` (the median ratio); below, their ratio over it."""
     fig = Figure(figsize=(7, 5))
     top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=(2, 1))
     top.plot(t, ranges, color="black", label="range meter")

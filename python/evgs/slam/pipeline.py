@@ -116,6 +116,11 @@ def write_metric_scale(state: SlamState, run: RunDir, log: Callable[[str], None]
             "range_samples": est.samples,
         }
         message = f"metric scale ({est.source}): {est.scale:.4g} m per map unit"
+    say(run, log, message)
+
+
+def say(run: RunDir, log: Callable[[str], None] | None, message: str) -> None:
+    """A line for the run's log and for ``log`` (the console), if given."""
     run.log(message)
     if log is not None:
         log(message)
@@ -133,11 +138,8 @@ def check_range_meter(state: SlamState, run: RunDir, log: Callable[[str], None] 
     except ValueError:  # no sample inside the run: nothing to compare
         return
     drift, ratios = agreement.drift(), agreement.ratios
-    state.metric |= {
-        "range_map_ratio": float(np.median(ratios)) if len(ratios) else float("nan"),
-        "range_map_drift": drift,
-        "range_map_samples": len(ratios),
-    }
+    unit = float(np.median(ratios)) if len(ratios) else float("nan")
+    state.metric |= {"range_map_ratio": unit, "range_map_drift": drift, "range_map_samples": len(ratios)}
     if len(ratios) < 2:
         message = (
             f"range meter against the map: the map covers the principal ray at {len(ratios)} of the "
@@ -145,14 +147,13 @@ def check_range_meter(state: SlamState, run: RunDir, log: Callable[[str], None] 
         )
     else:
         t = (agreement.t_us - agreement.t_us[0]) / 1e6
-        plot_range_agreement(t, agreement.ranges, agreement.depth, drift, run.diagnostics / "range_meter.png")
+        path = run.diagnostics / "range_meter.png"
+        plot_range_agreement(t, agreement.ranges, agreement.depth, unit, drift, path)
         message = (
             f"range meter against the map's first surface: {drift:+.1%} from the run's first fifth to its "
             "last (0: the map keeps the meter's distance; docs/ablations.md §47)"
         )
-    run.log(message)
-    if log is not None:
-        log(message)
+    say(run, log, message)
 
 
 def adopt(state: SlamState, other: SlamState) -> None:
@@ -198,9 +199,7 @@ def run_slam(
     pin_threads(cfg)
 
     def note(record: StageRecord) -> None:
-        run.log(describe(record))
-        if log is not None:
-            log(describe(record))
+        say(run, log, describe(record))
 
     last = checkpoint.snapshot(state)
     since_saved = 0
