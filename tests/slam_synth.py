@@ -21,8 +21,10 @@ from evgs.events.arrays import EventArray
 from evgs.geometry import invert_pose, make_pose
 from evgs.render import render
 from evgs.slam.gaussians import Gaussians
+from evgs.slam.guards import BrightnessAnchor
 from evgs.slam.pipeline import new_state
 from evgs.slam.state import SlamState
+from evgs.slam.trajectory import Trajectory
 from evgs.slam.windows import EventData
 
 CAMERA = Camera(80, 60, 70.0, 70.0, 40.0, 30.0)
@@ -133,3 +135,11 @@ def search_state(seq: Sequence, *sets: str) -> SlamState:
     cfg = load_config("synthetic/tiny", [*base, *sets])
     cfg = dataclasses.replace(cfg, seq=str(seq.root))
     return new_state(cfg, EventData.from_sequence(seq, cfg.data))
+
+
+def gt_state(seq: Sequence, scene: Scene, *sets: str) -> SlamState:
+    """A run's state holding the scene itself: its map and its GT knots (tiny config, ``sets`` on top)."""
+    cfg = load_config("synthetic/tiny", ["data.event_contrast=0.2", *sets])
+    traj, g = Trajectory(scene.frames_us, scene.poses), Gaussians.from_state(scene.gaussians.state())
+    data = EventData.from_sequence(seq, cfg.data)
+    return SlamState(cfg, data, traj, g, torch.Generator().manual_seed(0), BrightnessAnchor(0.0))

@@ -3,6 +3,9 @@
 
 from __future__ import annotations
 
+import dataclasses
+
+import numpy as np
 import pytest
 import torch
 
@@ -11,10 +14,11 @@ pytest.importorskip("evgs.render")
 from evgs.config import ConfigError, load_config  # noqa: E402
 from evgs.slam.branches import branch_score, run_branches  # noqa: E402
 from evgs.slam.lie import se3_inverse, se3_log  # noqa: E402
+from evgs.slam.metric_scale import first_surface  # noqa: E402
 from evgs.slam.motion_search import Hypothesis  # noqa: E402
 from evgs.slam.stages import initialize, start_from, step_chunk  # noqa: E402
 from evgs.slam.state import StageRecord  # noqa: E402
-from slam_synth import make_sequence, search_state  # noqa: E402
+from slam_synth import gt_state, make_sequence, search_state  # noqa: E402
 
 FRAMES = 2
 
@@ -63,6 +67,30 @@ def test_the_branch_that_explains_its_chunks_best_goes_on_as_if_alone(synth):
     assert {"branch0/init", "branch1/init", "branch0/track", "branch1/map"} <= stages
 
 
+def test_the_range_score_is_the_spread_of_the_meter_against_the_map(synth):
+    seq, scene = synth
+    n = len(scene.frames_us) - 1
+    s = gt_state(seq, scene, "init.branch_score=range")
+    with pytest.raises(ValueError, match="needs the sequence's range meter"):
+        branch_score(s, n)
+    _, true_range = first_surface(scene.gaussians, torch.as_tensor(scene.poses))
+
+    def metered(ranges: np.ndarray, *sets: str) -> float:
+        st = gt_state(seq, scene, "init.branch_score=range", *sets)
+        st = dataclasses.replace(st, data=dataclasses.replace(st.data, ranges=(scene.frames_us, ranges)))
+        return branch_score(st, n)
+
+    # The map keeps the meter's distance at any one scale: no spread.
+    assert metered(2.5 * true_range.numpy()) < 1e-6
+    # The meter reads 20 % farther from the k-th sample on: log 1.2 apart in a fraction p of them.
+    k = (n + 1) // 3
+    p = (n + 1 - k) / (n + 1)
+    stepped = np.where(np.arange(n + 1) < k, 1.0, 1.2) * true_range.numpy()
+    assert metered(stepped) == pytest.approx(np.log(1.2) * np.sqrt(p * (1 - p)), rel=1e-4)
+    # A map that covers none of the meter's rays never wins.
+    assert metered(true_range.numpy(), "scale.min_alpha=1.1") == float("inf")
+
+
 def test_branch_settings_are_checked():
     with pytest.raises(ConfigError, match="init.branches must be >= 1"):
         load_config("synthetic/tiny", ["init.branches=0"])
@@ -70,3 +98,5 @@ def test_branch_settings_are_checked():
         load_config("synthetic/tiny", ["init.branch_frames=-1"])
     with pytest.raises(ConfigError, match="init.branches > 1 needs init.motion_search"):
         load_config("synthetic/tiny", ["init.branches=2", "init.motion_search=false"])
+    with pytest.raises(ConfigError, match="branch_score"):
+        load_config("synthetic/tiny", ["init.branch_score=loss"])

@@ -13,7 +13,6 @@ pytest.importorskip("evgs.render")
 from evgs.config import load_config  # noqa: E402
 from evgs.render import render  # noqa: E402
 from evgs.slam.gaussians import Gaussians, quat_to_rotmat  # noqa: E402
-from evgs.slam.guards import BrightnessAnchor  # noqa: E402
 from evgs.slam.lie import se3_exp  # noqa: E402
 from evgs.slam.metric_scale import (  # noqa: E402
     apply_scale,
@@ -28,8 +27,7 @@ from evgs.slam.pipeline import check_range_meter, write_metric_scale  # noqa: E4
 from evgs.slam.run_dir import RunDir  # noqa: E402
 from evgs.slam.state import SlamState  # noqa: E402
 from evgs.slam.trajectory import Trajectory  # noqa: E402
-from evgs.slam.windows import EventData  # noqa: E402
-from slam_synth import make_sequence  # noqa: E402
+from slam_synth import gt_state, make_sequence  # noqa: E402
 
 TRUE_SCALE = 2.5  # metres per map unit of the state the tests build
 
@@ -43,14 +41,9 @@ def state_in_map_units(synth, *sets: str) -> tuple[SlamState, np.ndarray]:
     """The scene and its GT knots shrunk by ``TRUE_SCALE`` (what a monocular run might hold), and the
     true range on the principal ray at the knot times: the metric scene's first surface there."""
     seq, scene = synth
-    cfg = load_config("synthetic/tiny", ["data.event_contrast=0.2", *sets])
     _, ranges = first_surface(scene.gaussians, torch.as_tensor(scene.poses))
     ranges = ranges.numpy()
-    g = Gaussians.from_state(scene.gaussians.state())
-    state = SlamState(
-        cfg, EventData.from_sequence(seq, cfg.data), Trajectory(scene.frames_us, scene.poses), g,
-        torch.Generator().manual_seed(0), BrightnessAnchor(0.0),
-    )  # fmt: skip
+    state = gt_state(seq, scene, *sets)
     apply_scale(state, 1 / TRUE_SCALE)
     return state, ranges
 

@@ -71,6 +71,7 @@ class InitConfig:
     search_meter_advance: bool
     branches: int
     branch_frames: int
+    branch_score: Literal["events", "range"]
 
 
 @dataclass(frozen=True)

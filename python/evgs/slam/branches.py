@@ -18,12 +18,14 @@ branch goes on as if it had been the only one; the others' time is recorded in a
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable
 
 import torch
 
 from evgs.slam import checkpoint
+from evgs.slam.metric_scale import range_agreement
 from evgs.slam.motion_search import Hypothesis
 from evgs.slam.optimize import StageReporter, fixed_window_loss, range_penalty, range_unit
 from evgs.slam.stages import initialize, start_from, step_chunk
@@ -34,9 +36,16 @@ BRANCH_WINDOWS = 40  # windows the branches are compared on (8 scored the search
 
 @torch.no_grad()
 def branch_score(state: SlamState, n: int) -> float:
-    """The loss of ``state`` on fixed windows of chunks ``0..n-1``, with the range meter's terms as every
-    stage has them."""
+    """Lower is better. ``init.branch_score = "events"``: the loss of ``state`` on fixed windows of chunks
+    ``0..n-1``, with the range meter's terms as every stage has them. ``"range"``: the spread of the
+    meter against the map's first surface over the samples the branch has reached
+    (:meth:`RangeAgreement.spread`; infinite where the map covers fewer than two of their rays)."""
     cfg, span = state.cfg, state.data.span(0, n)
+    if cfg.init.branch_score == "range":
+        if state.data.ranges is None:
+            raise ValueError("init.branch_score = 'range' needs the sequence's range meter (range.csv)")
+        spread = range_agreement(state, *state.data.ranges, cfg.scale.min_alpha).spread()
+        return spread if math.isfinite(spread) else math.inf
     loss = fixed_window_loss(state, span, stage_seed(cfg.seed, "branch", n), BRANCH_WINDOWS)
     unit = range_unit(state, cfg.scale.range_weight)
     return loss + float(range_penalty(state, span, unit, cfg.scale.range_weight, cfg.scale.rate_weight))
@@ -75,9 +84,10 @@ def run_branches(
     kept.branch = ""
     others = sum(seconds for _, seconds, _, b in runs if b is not kept)
     scores = ", ".join(f"{h.name} {s:.5f}" for s, _, h, _ in runs)
+    what = "range spread" if cfg.init.branch_score == "range" else "loss"
     record = StageRecord(
         "branch", cfg.data.start_frame + n, 0, score, others, 0, False, len(kept.gaussians),
-        note=f"kept {hyp.name} of {len(runs)} (loss on chunks 0–{n - 1}: {scores})",
+        note=f"kept {hyp.name} of {len(runs)} ({what} on chunks 0–{n - 1}: {scores})",
     )  # fmt: skip
     kept.history.append(record)
     note(record)

@@ -137,6 +137,12 @@ class RangeAgreement:
         """``range / depth`` at the covered samples, in time order."""
         return self.ranges[self.covered] / self.depth[self.covered]
 
+    def spread(self) -> float:
+        """Standard deviation of ``log(range / depth)`` over the covered samples: 0 when the map's
+        distance from the cameras keeps to the meter's at one scale; NaN with fewer than two."""
+        r = self.ratios
+        return float(np.log(r).std()) if len(r) >= 2 else math.nan
+
     def drift(self) -> float:
         """Median ratio over the last fifth of the covered samples against the first fifth's, minus 1.
 
