@@ -1,18 +1,20 @@
 """The start of a run in branches (``init.branches``): each of the motion search's best hypotheses runs
-the initialization and ``init.branch_frames`` tracked frames, and the branch whose map and trajectory
-explain fixed windows of those chunks best goes on.
+the initialization and ``init.branch_frames`` tracked frames, and the best branch goes on: the one whose
+map and trajectory explain fixed windows of those chunks best, or (``init.branch_score = "range"``) the
+one whose map keeps the range meter's distance best.
 
 Why: on the search's ten chunks an orbit, its mirror image (the turn about the image-plane axes
 reversed, which a reversed relief explains as well) and the same orbit at half the rate (with twice the
-relief) score within the refits' noise, and which one wins changes with the seed (swirl_good: the
-mirror on seed 1, half the rate on seed 2). Twenty-five frames on, the map has a wider baseline: on
-swirl_good seeds 0 and 1 the true branch then explains the events best, but on seed 2 the mirror's does,
-and on swirl_low none of the three best motions turns enough. So it is off by default
-(docs/ablations.md §35).
+relief) score within the refits' noise, and which one wins changes with the seed. Twenty-five frames on,
+the map has a wider baseline, yet the events still favour the half rate or the mirror on three swirl_good
+seeds of four, by a few per cent; the meter does not: a map with the wrong relief puts the surface under
+it at the wrong depth as its ray sweeps the target, and on every seed tried the true branch's ratio of
+range to first surface wanders least (docs/ablations.md §35, §47). On swirl_low none of the three best
+motions turns enough, and without a meter there is nothing but the events; so it is off by default.
 
 The branches start from the same seeded map and random state, so they differ by their hypothesis alone,
-and they are compared on the same windows (:func:`evgs.slam.optimize.fixed_window_loss`). The kept
-branch goes on as if it had been the only one; the others' time is recorded in a ``branch`` stage.
+and they are compared on the same windows (:func:`evgs.slam.optimize.fixed_window_loss`) or samples. The
+kept branch goes on as if it had been the only one; the others' time is recorded in a ``branch`` stage.
 """
 
 from __future__ import annotations
