@@ -73,6 +73,8 @@ def test_the_range_score_is_the_spread_of_the_meter_against_the_map(synth):
     s = gt_state(seq, scene, "init.branch_score=range")
     with pytest.raises(ValueError, match="needs the sequence's range meter"):
         branch_score(s, n)
+    with pytest.raises(ValueError, match="needs the sequence's range meter"):  # before any branch runs
+        run_branches(s, [truth(synth, s.num_init_chunks())], lambda r: None)
     _, true_range = first_surface(scene.gaussians, torch.as_tensor(scene.poses))
 
     def metered(ranges: np.ndarray, *sets: str) -> float:

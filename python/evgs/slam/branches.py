@@ -24,6 +24,7 @@ import math
 import time
 from collections.abc import Callable
 
+import numpy as np
 import torch
 
 from evgs.slam import checkpoint
@@ -36,6 +37,13 @@ from evgs.slam.state import SlamState, StageRecord, stage_seed
 BRANCH_WINDOWS = 40  # windows the branches are compared on (8 scored the search's hypotheses: noisier)
 
 
+def meter(state: SlamState) -> tuple[np.ndarray, np.ndarray]:
+    """The sequence's range samples ``(t_us, metres)`` the range score needs; an error without them."""
+    if state.data.ranges is None:
+        raise ValueError("init.branch_score = 'range' needs the sequence's range meter (range.csv)")
+    return state.data.ranges
+
+
 @torch.no_grad()
 def branch_score(state: SlamState, n: int) -> float:
     """Lower is better. ``init.branch_score = "events"``: the loss of ``state`` on fixed windows of chunks
@@ -44,9 +52,7 @@ def branch_score(state: SlamState, n: int) -> float:
     (:meth:`RangeAgreement.spread`; infinite where the map covers fewer than two of their rays)."""
     cfg, span = state.cfg, state.data.span(0, n)
     if cfg.init.branch_score == "range":
-        if state.data.ranges is None:
-            raise ValueError("init.branch_score = 'range' needs the sequence's range meter (range.csv)")
-        spread = range_agreement(state, *state.data.ranges, cfg.scale.min_alpha).spread()
+        spread = range_agreement(state, *meter(state), cfg.scale.min_alpha).spread()
         return spread if math.isfinite(spread) else math.inf
     loss = fixed_window_loss(state, span, stage_seed(cfg.seed, "branch", n), BRANCH_WINDOWS)
     unit = range_unit(state, cfg.scale.range_weight)
@@ -64,6 +70,8 @@ def run_branches(
     record in its history. Branch ``i``'s stages reach ``note`` as ``branch<i>/<stage>``, its
     diagnostics are named ``branch<i>_<stage>_...``."""
     cfg, data = state.cfg, state.data
+    if cfg.init.branch_score == "range":
+        meter(state)  # before the branches' work, not after it
     n = min(data.n_chunks, state.num_init_chunks() + cfg.init.branch_frames)
     start = checkpoint.snapshot(state)
     runs: list[tuple[float, float, Hypothesis, SlamState]] = []
