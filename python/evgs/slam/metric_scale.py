@@ -137,6 +137,11 @@ class RangeAgreement:
         """``range / depth`` at the covered samples, in time order."""
         return self.ranges[self.covered] / self.depth[self.covered]
 
+    def median_ratio(self) -> float:
+        """The median ``range / depth`` (metres per unit of the run's map); NaN with no covered sample."""
+        r = self.ratios
+        return float(np.median(r)) if len(r) else math.nan
+
     def spread(self) -> float:
         """Standard deviation of ``log(range / depth)`` over the covered samples: 0 when the map's
         distance from the cameras keeps to the meter's at one scale; NaN with fewer than two."""
@@ -178,7 +183,7 @@ def range_scale(state: SlamState, t_us: np.ndarray, ranges: np.ndarray, min_alph
             f"scale: the map covers the image centre (opacity ≥ {min_alpha:g}) at none of the "
             f"{len(agreement.t_us)} range samples; lower scale.min_alpha or use scale.source = 'target_size'"
         )
-    return ScaleEstimate(float(np.median(ratios)), len(ratios), "range, first surface")
+    return ScaleEstimate(agreement.median_ratio(), len(ratios), "range, first surface")
 
 
 @torch.no_grad()

@@ -137,12 +137,11 @@ def check_range_meter(state: SlamState, run: RunDir, log: Callable[[str], None] 
         agreement = range_agreement(state, *state.data.ranges, state.cfg.scale.min_alpha)
     except ValueError:  # no sample inside the run: nothing to compare
         return
-    drift, ratios = agreement.drift(), agreement.ratios
-    unit = float(np.median(ratios)) if len(ratios) else float("nan")
-    state.metric |= {"range_map_ratio": unit, "range_map_drift": drift, "range_map_samples": len(ratios)}
-    if len(ratios) < 2:
+    drift, unit, covered = agreement.drift(), agreement.median_ratio(), int(agreement.covered.sum())
+    state.metric |= {"range_map_ratio": unit, "range_map_drift": drift, "range_map_samples": covered}
+    if covered < 2:
         message = (
-            f"range meter against the map: the map covers the principal ray at {len(ratios)} of the "
+            f"range meter against the map: the map covers the principal ray at {covered} of the "
             f"{len(agreement.t_us)} samples, too few to compare"
         )
     else:
