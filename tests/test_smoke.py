@@ -1,5 +1,6 @@
 """The package imports, the extension loads, and the CLI answers."""
 
+import os
 import subprocess
 import sys
 
@@ -39,3 +40,15 @@ def test_cli_as_module_reports_user_errors_in_one_line(module):
     assert out.returncode == 2, out.stderr
     assert "Traceback" not in out.stderr
     assert out.stderr.startswith("evgs: error: preset 'no_such'")
+
+
+@pytest.mark.parametrize(("preset", "expected"), [(None, "PASSIVE"), ("ACTIVE", "ACTIVE")])
+def test_cli_sets_omp_wait_policy_before_torch_loads(preset, expected):
+    """The command sleeps idle OpenMP threads (runs sharing cores spin otherwise) unless the user chose;
+    the setting only takes if torch has not loaded yet, so importing the CLI must not import torch."""
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    if preset is not None:
+        env["OMP_WAIT_POLICY"] = preset
+    script = "import os, sys, evgs.cli; print(os.environ['OMP_WAIT_POLICY'], 'torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True)
+    assert out.stdout.split() == [expected, "False"]

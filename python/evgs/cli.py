@@ -4,9 +4,15 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from evgs import __version__
+
+# torch's OpenMP threads spin between parallel regions by default. evgs's optimizer issues many small ops,
+# so two runs (or a run and a build) sharing the cores spin against each other's work: two runs side by side
+# took 32 min each spinning, 14 min sleeping. A run alone is as fast either way (docs/ablations.md §51). Set before any subcommand module imports torch; a user's own setting wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 # Modules that contribute subcommands; each has ``register(subparsers) -> None`` and sets
 # ``func`` on its parsers (a callable taking the parsed namespace, returning an exit code).
