@@ -11,7 +11,8 @@ from evgs import __version__
 
 # torch's OpenMP threads spin between parallel regions by default. evgs's optimizer issues many small ops,
 # so two runs (or a run and a build) sharing the cores spin against each other's work: two runs side by side
-# took 32 min each spinning, 14 min sleeping. A run alone is as fast either way (docs/ablations.md §51). Set before any subcommand module imports torch; a user's own setting wins.
+# took 32 min each spinning, 14 min sleeping. A run alone is as fast either way (docs/ablations.md §51).
+# Set before any subcommand module imports torch; a user's own setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 # Modules that contribute subcommands; each has ``register(subparsers) -> None`` and sets
