@@ -34,8 +34,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data-root", type=Path, default=Path("data"), metavar="DIR",
                    help="sequences are DIR/synthetic/<preset> (default: data)")  # fmt: skip
     p.add_argument("--resume", action="store_true",
-                   help="continue the suite in --out: skip finished runs, resume interrupted ones "
-                        "from their checkpoints")  # fmt: skip
+                   help="continue the suite in --out: finished runs are only re-evaluated (e.g. to add "
+                        "the image metrics after --no-images), interrupted ones resume from their "
+                        "checkpoints")  # fmt: skip
     p.add_argument("--no-images", action="store_true", help="skip rendering and image metrics")
     p.set_defaults(func=run)
 
