@@ -175,6 +175,45 @@ def test_tracking_recovers_a_perturbed_pose(synth, solver_sets):
     assert torch.equal(state.traj.knots()[: k + 1], torch.as_tensor(scene.poses[: k + 1]))
 
 
+@pytest.mark.parametrize("solver", ["adam", "lm"])
+def test_tracking_windows_reach_back_span_frames_and_end_at_the_new_frame(synth, monkeypatch, solver):
+    """``tracking.span_frames = n``: every tracking window ends at the new chunk's last event and starts
+    at most n chunks back, some beyond the new chunk; with the longer baselines tracking still recovers
+    the perturbed pose (Adam less of it in its fixed steps). 1 keeps the new chunk alone (extended only
+    to data.min_n_winsize)."""
+    _, scene = synth
+    k, n = 5, 3
+    T_gt = torch.as_tensor(scene.poses[k + 1])
+    start = T_gt @ se3_exp(torch.tensor([0.05, -0.04, 0.03, 0.02, -0.03, 0.02]).double())
+    seen: list[tuple[int, int]] = []
+    take = EventData.windows
+
+    def spy(self, sampler, batch, factor=1):
+        win = take(self, sampler, batch, factor)
+        seen.extend(zip(win.starts.tolist(), win.ends.tolist(), strict=True))
+        return win
+
+    monkeypatch.setattr(EventData, "windows", spy)
+    sets = ("economy.coarse_factor=1", "tracking.mask_alpha=0.8", "tracking.velocity_prior=0")
+    steps = ("tracking.num_opti_steps=8",) if solver == "lm" else ()
+    for frames in (1, n):
+        seen.clear()
+        cfg = config(f"tracking.solver={solver}", *steps, *sets, f"tracking.span_frames={frames}")
+        state = gt_state(synth, cfg, k + 1)
+        track(state, k, pose=start)
+        chunks = state.data.chunks
+        lo = chunks[k + 1 - frames, 0] if frames > 1 else state.data.span_with_min(k, k + 1)[0]
+        assert seen and all(s >= lo and e <= chunks[k, 1] for s, e in seen), frames
+        if frames > 1:
+            assert all(e == chunks[k, 1] for _, e in seen)
+            assert min(s for s, _ in seen) < chunks[k - 1, 0]  # baselines of more than two frames occur
+        err = pose_error(state.traj.knots()[k + 1], T_gt.numpy())[1]
+        # Adam's 30 fixed-size steps on the longer windows correct less of the start than LM's 8
+        assert err < (0.5 if solver == "lm" else 0.8) * pose_error(start, T_gt.numpy())[1], (frames, err)
+    with pytest.raises(ConfigError, match="tracking.span_frames must be >= 1"):
+        config("tracking.span_frames=0")
+
+
 def test_lm_velocity_prior_pulls_towards_the_prediction(synth):
     """``tracking.velocity_prior`` is a pull towards where the knot started (the constant-velocity
     prediction): off, LM recovers the true pose; at weight 1 it stops part-way (the data's curvature and

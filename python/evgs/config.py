@@ -86,6 +86,7 @@ class TrackingConfig:
     velocity_prior: float
     velocity_prior_floor: float
     velocity_prior_frames: int
+    span_frames: int
 
 
 @dataclass(frozen=True)
@@ -325,6 +326,8 @@ def _check_ranges(cfg: Config, source: str) -> None:
         problems.append("init.branches must be >= 1 (1 = off) and init.branch_frames >= 0")
     elif cfg.init.branches > 1 and not cfg.init.motion_search:
         problems.append("init.branches > 1 needs init.motion_search = true (branches start from its best)")
+    if cfg.tracking.span_frames < 1:
+        problems.append("tracking.span_frames must be >= 1 (1 = the new chunk only)")
     if cfg.tracking.velocity_prior < 0 or (cfg.tracking.velocity_prior > 0 and cfg.tracking.solver != "lm"):
         problems.append("tracking.velocity_prior must be >= 0, and > 0 only with tracking.solver = 'lm'")
     if not 0 <= cfg.tracking.velocity_prior_floor <= 1:

@@ -160,7 +160,7 @@ def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None =
     tc, econ, kind, sc = cfg.tracking, cfg.economy, cfg.loss.event_loss, cfg.scale
     (knot,) = spec.trainable_knots
     prior_w = prior_weight(tc, knot - state.num_init_chunks())
-    sampler = data.sampler(spec.span, spec.seed)
+    sampler = data.sampler(spec.span, spec.seed, spec.max_window)
     traj.set_trainable([knot])
     # Rotations move a pixel by f·ε; translations by f·ε/depth: matched at the scene's scale.
     eps = torch.tensor([tc.lm_step * cfg.gaussians.bounding_size] * 3 + [tc.lm_step] * 3, dtype=torch.float64)

@@ -88,10 +88,15 @@ def track(
     """Track chunk ``k``; the new knot starts at ``pose`` (default: constant-velocity prediction)."""
     cfg = state.cfg
     state.traj.append(int(state.data.frames_us[k + 1]), pose)
+    span_frames = cfg.tracking.span_frames
+    span = state.data.span_with_min(max(k + 1 - span_frames, 0), k + 1)
     spec = StageSpec(
-        "track", _seq_frame(state, k + 1), cfg.tracking.num_opti_steps, state.data.span_with_min(k, k + 1),
+        "track", _seq_frame(state, k + 1), cfg.tracking.num_opti_steps, span,
         cfg.data.training_batch_size, stage_seed(cfg.seed, "track", k), [k + 1], [k, k + 1],
         train_gaussians=False, masked=True,
+        # Longer windows than data.max_n_winsize where the span needs them: every window then ends at the
+        # span's last event, so each one reaches the new knot.
+        max_window=span[1] - span[0] if span_frames > 1 else 0,
     )  # fmt: skip
     if cfg.tracking.solver == "lm":
         return lm_track(state, spec, reporter)
