@@ -22,7 +22,7 @@ from evgs.slam.pose_solver import prior_curvature, prior_weight  # noqa: E402
 from evgs.slam.stages import global_ba, map_window, track  # noqa: E402
 from evgs.slam.state import SlamState  # noqa: E402
 from evgs.slam.trajectory import Trajectory  # noqa: E402
-from evgs.slam.windows import EventData, scaled_camera  # noqa: E402
+from evgs.slam.windows import EventData, Windows, scaled_camera  # noqa: E402
 from slam_synth import CONTRAST, make_sequence  # noqa: E402
 
 
@@ -42,6 +42,29 @@ def gt_state(synth, cfg, n_knots: int, gaussians: Gaussians | None = None) -> Sl
     g = Gaussians.from_state((gaussians or scene.gaussians).state())
     data = EventData.from_sequence(seq, cfg.data)
     return SlamState(cfg, data, traj, g, torch.Generator().manual_seed(0), BrightnessAnchor(0.0))
+
+
+def record_windows(monkeypatch) -> list[Windows]:
+    """Every batch of windows the stages draw from now on, in order (cleared by the caller between stages)."""
+    seen: list[Windows] = []
+    take = EventData.windows
+
+    def spy(self, sampler, batch, factor=1):
+        win = take(self, sampler, batch, factor)
+        seen.append(win)
+        return win
+
+    monkeypatch.setattr(EventData, "windows", spy)
+    return seen
+
+
+def ranges(seen: list[Windows]) -> list[tuple[int, int]]:
+    """``(start, end)`` event indices of every window in ``seen``."""
+    return [(int(s), int(e)) for win in seen for s, e in zip(win.starts, win.ends, strict=True)]
+
+
+def lengths(seen: list[Windows]) -> list[int]:
+    return [e - s for s, e in ranges(seen)]
 
 
 def pose_error(T: torch.Tensor, T_gt: np.ndarray) -> tuple[float, float]:
@@ -185,23 +208,16 @@ def test_tracking_windows_reach_back_span_frames_and_end_at_the_new_frame(synth,
     k, n = 5, 3
     T_gt = torch.as_tensor(scene.poses[k + 1])
     start = T_gt @ se3_exp(torch.tensor([0.05, -0.04, 0.03, 0.02, -0.03, 0.02]).double())
-    seen: list[tuple[int, int]] = []
-    take = EventData.windows
-
-    def spy(self, sampler, batch, factor=1):
-        win = take(self, sampler, batch, factor)
-        seen.extend(zip(win.starts.tolist(), win.ends.tolist(), strict=True))
-        return win
-
-    monkeypatch.setattr(EventData, "windows", spy)
+    drawn = record_windows(monkeypatch)
     sets = ("economy.coarse_factor=1", "tracking.mask_alpha=0.8", "tracking.velocity_prior=0")
     steps = ("tracking.num_opti_steps=8",) if solver == "lm" else ()
     for frames in (1, n):
-        seen.clear()
+        drawn.clear()
         cfg = config(f"tracking.solver={solver}", *steps, *sets, f"tracking.span_frames={frames}")
         state = gt_state(synth, cfg, k + 1)
         track(state, k, pose=start)
         chunks = state.data.chunks
+        seen = ranges(drawn)
         lo = chunks[k + 1 - frames, 0] if frames > 1 else state.data.span_with_min(k, k + 1)[0]
         assert seen and all(s >= lo and e <= chunks[k, 1] for s, e in seen), frames
         if frames > 1:
@@ -352,25 +368,17 @@ def test_global_ba_windows_reach_global_ba_max_n_winsize(synth, monkeypatch):
         "data.max_n_winsize=500",
     )
     short, long_ = 500, 2000
-    lengths: dict[str, list[int]] = {"final": [], "map": []}
-    take = EventData.windows
-
-    def spy(self, sampler, batch, factor=1):
-        win = take(self, sampler, batch, factor)
-        lengths[stage].extend((win.ends - win.starts).tolist())
-        return win
-
-    monkeypatch.setattr(EventData, "windows", spy)
+    drawn = record_windows(monkeypatch)
     state = gt_state(
         synth, dataclasses.replace(cfg, global_ba=dataclasses.replace(cfg.global_ba, max_n_winsize=long_)), 5
     )
     assert state.data.span(0, 4)[1] - state.data.span(0, 4)[0] > long_  # the span allows long windows
-    stage = "final"
     global_ba(state, final=True)
-    stage = "map"
+    final = lengths(drawn)
+    drawn.clear()
     map_window(state, 3)
-    assert max(lengths["final"]) > short and max(lengths["final"]) <= long_
-    assert max(lengths["map"]) <= short
+    assert max(final) > short and max(final) <= long_
+    assert max(lengths(drawn)) <= short
     sampler = state.data.sampler(state.data.span(0, 4), 0)  # 0: the data's
     starts, ends = sampler.sample(50)
     assert int((np.asarray(ends) - np.asarray(starts)).max()) <= short
