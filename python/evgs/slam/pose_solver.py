@@ -22,7 +22,8 @@ change of rate just as firmly (the swirl's turn slowing down and reversing), so 
 on in the orbit, descent and docking_low configs, whose velocity is steady (docs/ablations.md §10–11,
 §17). ``tracking.velocity_prior_floor`` raises each of ``D``'s entries to at least that fraction of the
 largest translation's (rotation's) entry (:func:`prior_curvature`; the orbit configs, §34);
-``tracking.velocity_prior_frames`` limits the prior to the first tracked frames (:func:`prior_weight`).
+``tracking.velocity_prior_frames`` limits the prior to the first tracked frames (:func:`prior_weight`;
+the swirl_good config, §35).
 """
 
 from __future__ import annotations
@@ -149,7 +150,8 @@ def prior_weight(tc: TrackingConfig, tracked: int) -> float:
     it turns too slowly (the swirl: half the true rate, docs/ablations.md §14). Held at the
     initialization's velocity while the local BAs give the map a wider baseline, tracking then follows the
     swirl's slowing turn on its own, though it lags on the way back (seed 0: ATE 10.15 → 2.21 %). It
-    holds a wrong start just as firmly, so no config sets it yet (§35)."""
+    holds a wrong start just as firmly: only swirl_good's config sets it, where the branches pick the
+    start (§35, §39); a prior that lingers, even weakly, carries the turn past its reversal (§57)."""
     frames = tc.velocity_prior_frames
     return tc.velocity_prior if frames == 0 or tracked <= frames else 0.0
 
