@@ -1,7 +1,7 @@
 """Map quality measured apart from pose estimation (a diagnostic benchmark, not a test).
 
     PYTHONPATH=python python benches/slam_oracle.py [--seq synthetic/orbit_ambient] [--track 6]
-        [--rates 1,0.5,0.25] [--set K=V]
+        [--start 0] [--track-from K] [--rates 1,0.5,0.25] [--set K=V]
 
 0. With ``--rates``: the motion search's refit (``init.search_steps`` on the seeded map, the knots
    frozen) on the truth's own first knots, its motion scaled by each rate, scored as the search scores
@@ -11,7 +11,11 @@
 
 1. Initialization with the ground-truth knots, frozen (translations scaled by ``init_depth`` / the
    distance to the first frame's range sample, so the map sits where a real run would put it): the map
-   learns from correct poses only.
+   learns from correct poses only. ``--start A`` trains it on chunks ``A`` to ``A + m`` instead of the
+   first ``m`` (the poses relative to frame ``A``), to ask the same questions of a later stretch of the
+   sequence. ``--track-from K`` tracks from chunk ``K`` instead of the map's last one, the knots after
+   ``K`` dropped: with a map trained over the whole way (``--set init.num_frames=75``) it asks whether a
+   map from the truth's poses holds tracking on the swirl's way back (docs/ablations.md §58).
 2. The map's event loss on the init chunks, beside the loss of predicting no events.
 3. The loss along the true motion of each new chunk: the new knot at ``a`` times the true step from the
    previous knot (``a = 0`` no motion, ``a = 1`` the truth). A map that generalises has its minimum at 1;
@@ -38,7 +42,7 @@ from evgs.slam.lie import se3_exp, se3_inverse, se3_log
 from evgs.slam.loss import event_loss, pointwise_error, predicted_events
 from evgs.slam.motion_search import EVAL_WINDOWS, fit, search_chunks
 from evgs.slam.optimize import StageSpec, fixed_windows, run_stage
-from evgs.slam.pipeline import new_state, pin_threads
+from evgs.slam.pipeline import initial_gaussians, new_state, pin_threads
 from evgs.slam.stages import set_brightness_reference, track
 from evgs.slam.state import SlamState, stage_seed
 from evgs.slam.trajectory import Trajectory
@@ -49,16 +53,18 @@ from rich.table import Table
 STEPS = (0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5)
 
 
-def gt_knots(seq: Sequence, data: EventData, init_depth: float) -> torch.Tensor:
-    """GT camera-to-world poses at the frames, relative to the first, in map units."""
+def gt_knots(seq: Sequence, data: EventData, init_depth: float, origin: int = 0) -> torch.Tensor:
+    """GT camera-to-world poses at the frames, relative to frame ``origin``, in map units (the range
+    sample nearest that frame is ``init_depth``)."""
     gt = seq.poses_gt()
     ranges = seq.range_samples()
     if gt is None or ranges is None:
         raise SystemExit(f"{seq.root}: needs poses_gt.txt and range.csv (a simulated sequence)")
     t, T = gt
     G = torch.as_tensor(T[np.searchsorted(t, data.frames_us)])
-    rel = se3_inverse(G[0]) @ G
-    rel[:, :3, 3] *= init_depth / float(ranges[1][0])
+    rel = se3_inverse(G[origin]) @ G
+    near = int(np.argmin(np.abs(ranges[0] - data.frames_us[origin])))
+    rel[:, :3, 3] *= init_depth / float(ranges[1][near])
     return rel
 
 
@@ -108,6 +114,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seq", default="synthetic/orbit_ambient")
     ap.add_argument("--track", type=int, default=6, help="new chunks to track after the init")
+    ap.add_argument("--start", type=int, default=0, help="first chunk of the map's training (0: the init's)")
+    ap.add_argument("--track-from", type=int, default=-1, help="first chunk to track (-1: the map's last)")
     ap.add_argument("--rates", default="", help="comma-separated rates for step 0 (none: skipped)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     args = ap.parse_args()
@@ -118,15 +126,24 @@ def main() -> None:
     data = EventData.from_sequence(seq, cfg.data)
     pin_threads(cfg)  # as run_slam does
     state = new_state(cfg, data)
-    rel = gt_knots(seq, data, cfg.gaussians.init_depth)
+    start, m = args.start, state.num_init_chunks()
+    e = start + m  # the map's last chunk: tracking starts after it
+    first = e if args.track_from < 0 else args.track_from
+    if start < 0 or not 1 <= first <= e or first + args.track > data.n_chunks or (start and args.rates):
+        raise SystemExit(
+            f"--start {start}, --track-from {first}: needs 0 <= start, 1 <= track-from <= start + {m}, "
+            f"track-from + --track <= {data.n_chunks} chunks, and --rates only from the start"
+        )
+    rel = gt_knots(seq, data, cfg.gaussians.init_depth, origin=start)
     if args.rates:
         console.print(search_refits(state, rel, [float(r) for r in args.rates.split(",")]))
-    m = state.num_init_chunks()
-    with torch.no_grad():
-        state.traj.base.copy_(rel[: m + 1])
+    if start:  # seeded in front of the start frame's camera
+        state.gaussians = initial_gaussians(cfg.gaussians, data, m, state.generator, first=start)
+    state.traj = Trajectory(data.frames_us[: e + 1], rel[: e + 1], cfg.trajectory.interpolation)
     spec = StageSpec(
-        "init", m, cfg.init.num_opti_steps_for_init, data.span(0, m), cfg.data.training_batch_size,
-        stage_seed(cfg.seed, "init", m), [], range(m + 1), train_gaussians=True, lr_boost=cfg.init.lr_boost,
+        "init", e, cfg.init.num_opti_steps_for_init, data.span(start, e), cfg.data.training_batch_size,
+        stage_seed(cfg.seed, "init", e), [], range(start, e + 1), train_gaussians=True,
+        lr_boost=cfg.init.lr_boost,
     )  # fmt: skip
     t0 = time.perf_counter()
     record = run_stage(state, spec)
@@ -135,20 +152,23 @@ def main() -> None:
         f"map from GT poses: {record.iterations} it, {time.perf_counter() - t0:.0f} s, "
         f"{len(state.gaussians)} Gaussians"
     )
-    inside = landscape(state, rel, m - 1)
+    inside = landscape(state, rel, e - 1)
     table = Table(title="event loss along the true motion (÷ minimum); a = fraction of the true step")
     table.add_column("chunk")
     for a in STEPS:
         table.add_column(f"a={a:g}", justify="right")
     table.add_column("argmin", justify="right")
-    for k, vals in [(m - 1, inside)] + [(k, landscape(state, rel, k)) for k in range(m, m + args.track)]:
-        name = f"{k} (init)" if k < m else str(k)
+    tracked = range(first, first + args.track)
+    for k, vals in [(e - 1, inside)] + [(k, landscape(state, rel, k)) for k in tracked]:
+        name = f"{k} (init)" if k < e else str(k)
         table.add_row(name, *(f"{v / vals.min():.3f}" for v in vals), f"{STEPS[int(vals.argmin())]:g}")
     console.print(table)
     errors = Table(title=f"tracking on the frozen map ({cfg.tracking.solver}), error of each new knot")
     for col in ("knot", "rotation °", "translation (map units)", "true step °"):
         errors.add_column(col, justify="right")
-    for k in range(m, min(m + args.track, data.n_chunks)):
+    if first < e:
+        state.traj = Trajectory(data.frames_us[: first + 1], rel[: first + 1], cfg.trajectory.interpolation)
+    for k in tracked:
         track(state, k)
         with torch.no_grad():
             err = se3_log(se3_inverse(rel[k + 1]) @ state.traj.knots()[k + 1])

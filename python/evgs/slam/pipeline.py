@@ -45,11 +45,14 @@ def new_state(cfg: Config, data: EventData) -> SlamState:
     return SlamState(cfg, data, traj, gaussians, generator, anchor, range_prior=RangePrior.for_run(cfg, data))
 
 
-def initial_gaussians(g: GaussiansConfig, data: EventData, m: int, generator: torch.Generator) -> Gaussians:
-    """The map before initialization, seeded as ``gaussians.init_seeding`` says; the first camera is near
-    the identity, so its optical axis is +z."""
+def initial_gaussians(
+    g: GaussiansConfig, data: EventData, m: int, generator: torch.Generator, first: int = 0
+) -> Gaussians:
+    """The map before initialization, seeded as ``gaussians.init_seeding`` says from chunks ``first`` to
+    ``first + m``; the camera of chunk ``first`` is near the identity, so its optical axis is +z."""
     if g.init_seeding == "events":
-        weights = seeding_weights(data.activity(data.span(0, m)), g.init_min_events, g.init_fill_gap)
+        span = data.span(first, first + m)
+        weights = seeding_weights(data.activity(span), g.init_min_events, g.init_fill_gap)
         spread = g.init_depth_spread or g.bounding_size
         depths = (g.init_depth - spread, g.init_depth + spread)
         if depths[0] <= 0:
