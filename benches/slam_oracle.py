@@ -15,7 +15,9 @@
    first ``m`` (the poses relative to frame ``A``), to ask the same questions of a later stretch of the
    sequence. ``--track-from K`` tracks from chunk ``K`` instead of the map's last one, the knots after
    ``K`` dropped: with a map trained over the whole way (``--set init.num_frames=75``) it asks whether a
-   map from the truth's poses holds tracking on the swirl's way back (docs/ablations.md §58).
+   map from the truth's poses holds tracking on the swirl's way back (docs/ablations.md §58). The
+   velocity prior's frames count from the map's last chunk, so set ``tracking.velocity_prior=0`` to
+   track as a run does after them.
 2. The map's event loss on the init chunks, beside the loss of predicting no events.
 3. The loss along the true motion of each new chunk: the new knot at ``a`` times the true step from the
    previous knot (``a = 0`` no motion, ``a = 1`` the truth). A map that generalises has its minimum at 1;
