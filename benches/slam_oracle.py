@@ -137,11 +137,16 @@ def main() -> None:
             f"track-from + --track <= {data.n_chunks} chunks, and --rates only from the start"
         )
     rel = gt_knots(seq, data, cfg.gaussians.init_depth, origin=start)
+
+    def truth_until(n: int) -> Trajectory:
+        """The truth's knots up to chunk ``n``."""
+        return Trajectory(data.frames_us[: n + 1], rel[: n + 1], cfg.trajectory.interpolation)
+
     if args.rates:
         console.print(search_refits(state, rel, [float(r) for r in args.rates.split(",")]))
     if start:  # seeded in front of the start frame's camera
         state.gaussians = initial_gaussians(cfg.gaussians, data, m, state.generator, first=start)
-    state.traj = Trajectory(data.frames_us[: e + 1], rel[: e + 1], cfg.trajectory.interpolation)
+    state.traj = truth_until(e)
     spec = StageSpec(
         "init", e, cfg.init.num_opti_steps_for_init, data.span(start, e), cfg.data.training_batch_size,
         stage_seed(cfg.seed, "init", e), [], range(start, e + 1), train_gaussians=True,
@@ -169,7 +174,7 @@ def main() -> None:
     for col in ("knot", "rotation °", "translation (map units)", "true step °"):
         errors.add_column(col, justify="right")
     if first < e:
-        state.traj = Trajectory(data.frames_us[: first + 1], rel[: first + 1], cfg.trajectory.interpolation)
+        state.traj = truth_until(first)
     for k in tracked:
         track(state, k)
         with torch.no_grad():
