@@ -359,6 +359,30 @@ def test_mapping_without_poses_trains_the_map_only(synth):
     assert not torch.equal(state.gaussians["means"][: len(means)], means)
 
 
+def test_mapping_replays_the_chunks_before_its_window(synth, monkeypatch):
+    """``mapping.replay_every = 3``: every third iteration of a local BA draws its window from the tracked
+    chunks before the window (not the initialization's), whose knots stay where they were; the other
+    iterations keep to the window."""
+    sets = ("mapping.num_opti_steps_for_BA=9", "economy.coarse_factor=1", "mapping.window=2")
+    k = 5
+    drawn = record_windows(monkeypatch)
+    for every in (0, 3):
+        drawn.clear()
+        state = gt_state(synth, config(*sets, f"mapping.replay_every={every}"), k + 2)
+        before = state.traj.knots().detach().clone()
+        map_window(state, k)
+        m = state.num_init_chunks()
+        assert 0 < m < k - 1
+        old, new = state.data.span(m, k - 1), state.data.span(k - 1, k + 1)
+        inside = [
+            "old" if old[0] <= s and e <= old[1] else "new" if new[0] <= s and e <= new[1] else "across"
+            for s, e in ranges(drawn)
+        ]
+        replayed = ["old" if every and (i + 1) % every == 0 else "new" for i in range(9)]
+        assert inside == replayed
+        assert torch.equal(state.traj.knots()[: k - 1], before[: k - 1])
+
+
 def test_global_ba_windows_reach_global_ba_max_n_winsize(synth, monkeypatch):
     """``global_ba.max_n_winsize`` lengthens the global BA's windows only; 0 keeps data.max_n_winsize."""
     cfg = config(

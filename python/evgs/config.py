@@ -98,6 +98,7 @@ class MappingConfig:
     new_gaussian_alpha: float
     new_gaussian_depth: float
     train_poses: bool
+    replay_every: int
 
 
 @dataclass(frozen=True)

@@ -48,6 +48,10 @@ class StageSpec:
     lr_boost: float = 1.0  # every Adam rate starts this many times higher, decaying to 1× at the end
     tv_weight: float = 0.0  # weight of the renders' total variation (a prior on the map's appearance)
     max_window: int = 0  # longest sampled window in events (0 = data.max_n_winsize)
+    # Every ``replay_every``-th iteration draws its window from this event range instead (the chunks
+    # before a local BA's window, their knots held), so the map keeps explaining the views it left.
+    replay_span: tuple[int, int] | None = None
+    replay_every: int = 0
     # False: a fixed schedule, no densification, pruning or early switches, so the result is a smooth
     # function of the fixed knots (the motion search compares refits of nearby motions)
     adaptive: bool = True
@@ -218,6 +222,9 @@ def run_stage(state: SlamState, spec: StageSpec, reporter: StageReporter | None 
     cfg, data, traj = state.cfg, state.data, state.traj
     econ = cfg.economy
     sampler = data.sampler(spec.span, spec.seed, spec.max_window)
+    replay_sampler = None
+    if spec.replay_span is not None and spec.replay_every > 0:
+        replay_sampler = data.sampler(spec.replay_span, spec.seed + 1, spec.max_window)
     traj.set_trainable(list(spec.trainable_knots))
     pose_opt = (
         torch.optim.Adam([traj.delta], lr=cfg.trajectory.pose_lr) if len(spec.trainable_knots) else None
@@ -235,7 +242,8 @@ def run_stage(state: SlamState, spec: StageSpec, reporter: StageReporter | None 
     it = -1
     for it in range(spec.iterations):
         factor = econ.coarse_factor if it < coarse_end else 1
-        win = data.windows(sampler, spec.batch, factor)
+        replayed = replay_sampler is not None and (it + 1) % spec.replay_every == 0
+        win = data.windows(replay_sampler if replayed else sampler, spec.batch, factor)
         if pose_opt is not None:
             pose_opt.zero_grad(set_to_none=True)
         if g_opt is not None:
@@ -259,7 +267,8 @@ def run_stage(state: SlamState, spec: StageSpec, reporter: StageReporter | None 
         n_events += win.n_events
         if reporter is not None:
             reporter.advance(state, spec, it, loss, n_events, time.perf_counter() - t0)
-        if spec.adaptive and stopper.update(loss):
+        # Only the stage's own windows judge convergence: the replayed ones fit other views.
+        if spec.adaptive and not replayed and stopper.update(loss):
             if factor > 1:  # the coarse level has converged: go on at full resolution
                 coarse_end, stopper = it + 1, Convergence(econ.patience, econ.min_rel_change)
             elif it + 1 >= econ.min_fraction * spec.iterations and spec.lr_boost == 1.0:

@@ -9,7 +9,8 @@ event loss cannot observe.
 - tracking of chunk ``k``: knot ``k+1`` appended by constant velocity, then only it moves;
 - mapping (local BA): the last ``mapping.window`` chunks, their knots (unless ``mapping.train_poses`` is
   false) and the Gaussians, after adding Gaussians where the newest view is still uncovered (low alpha)
-  but events fired;
+  but events fired; with ``mapping.replay_every`` some iterations replay the tracked chunks before the
+  window, their knots held;
 - global BA: windows from all chunks so far, every knot but the first and the Gaussians.
 """
 
@@ -132,6 +133,17 @@ def add_gaussians_from_newest_view(state: SlamState, k: int) -> int:
     return len(extra["means"])
 
 
+def replay_span(state: SlamState, first: int) -> tuple[int, int] | None:
+    """The events of the tracked chunks before ``first`` when a local BA replays them
+    (``mapping.replay_every``) and they fill a window; else None. The initialization's chunks are left
+    out: their knots come from a few frames' baseline and are the run's least certain."""
+    start = state.num_init_chunks()
+    if state.cfg.mapping.replay_every <= 0 or first <= start:
+        return None
+    span = state.data.span(start, first)
+    return span if span[1] - span[0] >= state.cfg.data.min_n_winsize else None
+
+
 def map_window(state: SlamState, k: int, reporter: StageReporter | None = None) -> StageRecord:
     cfg = state.cfg
     added = add_gaussians_from_newest_view(state, k)
@@ -140,7 +152,8 @@ def map_window(state: SlamState, k: int, reporter: StageReporter | None = None) 
     spec = StageSpec(
         "map", _seq_frame(state, k + 1), cfg.mapping.num_opti_steps_for_BA, state.data.span(first, k + 1),
         cfg.data.training_batch_size, stage_seed(cfg.seed, "map", k), posed, range(first, k + 2),
-        train_gaussians=True, anchored=True,
+        train_gaussians=True, anchored=True, replay_span=replay_span(state, first),
+        replay_every=cfg.mapping.replay_every,
     )  # fmt: skip
     record = run_stage(state, spec, reporter)
     record.added = added
