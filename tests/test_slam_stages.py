@@ -381,6 +381,9 @@ def test_mapping_replays_the_chunks_before_its_window(synth, monkeypatch):
         replayed = ["old" if every and (i + 1) % every == 0 else "new" for i in range(9)]
         assert inside == replayed
         assert torch.equal(state.traj.knots()[: k - 1], before[: k - 1])
+    for bad in (-1, 1):
+        with pytest.raises(ConfigError, match="mapping.replay_every must be 0"):
+            config(f"mapping.replay_every={bad}")
 
 
 def test_global_ba_windows_reach_global_ba_max_n_winsize(synth, monkeypatch):

@@ -327,6 +327,8 @@ def _check_ranges(cfg: Config, source: str) -> None:
         problems.append("init.branches must be >= 1 (1 = off) and init.branch_frames >= 0")
     elif cfg.init.branches > 1 and not cfg.init.motion_search:
         problems.append("init.branches > 1 needs init.motion_search = true (branches start from its best)")
+    if cfg.mapping.replay_every < 0 or cfg.mapping.replay_every == 1:
+        problems.append("mapping.replay_every must be 0 (off) or >= 2 (1 would leave no window of its own)")
     if cfg.tracking.span_frames < 1:
         problems.append("tracking.span_frames must be >= 1 (1 = the new chunk only)")
     if cfg.tracking.velocity_prior < 0 or (cfg.tracking.velocity_prior > 0 and cfg.tracking.solver != "lm"):
