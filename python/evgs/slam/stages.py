@@ -134,11 +134,12 @@ def add_gaussians_from_newest_view(state: SlamState, k: int) -> int:
 
 
 def replay_span(state: SlamState, first: int) -> tuple[int, int] | None:
-    """The events of the tracked chunks before ``first`` when a local BA replays them
-    (``mapping.replay_every``) and they fill a window; else None. The initialization's chunks are left
-    out: their knots come from a few frames' baseline and are the run's least certain."""
+    """The events of the tracked chunks before ``first``, which a local BA replays every
+    ``mapping.replay_every``-th iteration (``run_stage`` decides whether it does), when they fill a
+    window; else None. The initialization's chunks are left out: their knots come from a few frames'
+    baseline and are the run's least certain."""
     start = state.num_init_chunks()
-    if state.cfg.mapping.replay_every <= 0 or first <= start:
+    if first <= start:
         return None
     span = state.data.span(start, first)
     return span if span[1] - span[0] >= state.cfg.data.min_n_winsize else None
