@@ -8,9 +8,10 @@ render unchanged. So a run ends with one similarity that makes its outputs metri
   much of the meter's change the trajectory's own motion explains:
   - the *closing rate* (:func:`closing_scale`): between consecutive samples the range falls by as much
     as the camera advances along its optical axis (a surface facing the camera: an approach, a
-    descent). ``s`` = the least-squares ratio of the decreases to the advances over the run. It needs
-    the trajectory only, and the trajectory is what must come out metric: the map's depth can be a few
-    per cent off its trajectory (docs/ablations.md §26, §28). Used when the advances explain at least
+    descent). ``s`` = the meter's total decrease over the camera's total advance, from the
+    initialization's last knot on (:func:`after_initialization`). It needs the trajectory only, and the
+    trajectory is what must come out metric: the map's depth can be a few per cent off its trajectory
+    (docs/ablations.md §26, §28). Used when the advances explain at least
     ``scale.closing_min_explained`` of the decreases' energy (≈ 1 on approaches and descents).
   - the *first surface* (:func:`range_scale`), otherwise (an orbit: the range changes with the target's
     shape while the camera hardly advances): the map's first surface on that ray at the same times
@@ -103,20 +104,41 @@ class ClosingFit:
 
 @torch.no_grad()
 def closing_scale(traj: Trajectory, t_us: np.ndarray, ranges: np.ndarray) -> ClosingFit | None:
-    """Least-squares ``s`` of ``Δr ≈ s · advance`` over consecutive samples (time-ordered, inside the
-    trajectory): the meter's decrease against the camera's advance along its optical axis, over the
-    pairs across which the meter does not jump. None with fewer than two samples or no advance."""
+    """``s = ΣΔr / Σ advance`` over consecutive samples (time-ordered, inside the trajectory): the
+    meter's decreases against the camera's advances along its optical axis, over the pairs across which
+    the meter does not jump. None with fewer than two samples or no net advance.
+
+    A ratio of sums, not the least-squares slope through the origin: every sample's position carries
+    the tracker's jitter, a pair's advance the difference of two such errors, and least squares adds
+    their variance to its denominator, reading the scale low (regression dilution: the trajectory came
+    out 1.2–4.5 % too small on every docking_low seed and two swirl_good seeds of three). Summed along a
+    steady axis, the advances telescope to the displacement between the first and the last sample,
+    where the jitter enters once (docs/ablations.md §60)."""
     if len(t_us) < 2:
         return None
     poses = traj.pose_at(t_us).double()
     steady = ~meter_jumps(ranges)
     advance = axial_advance(poses, poses[:, :3, 2]).numpy()[steady]
     decrease = (ranges[:-1] - ranges[1:])[steady]
-    if not (advance @ advance > 0 and decrease @ decrease > 0):
+    if not (advance.sum() != 0 and decrease @ decrease > 0):
         return None
-    s = float(advance @ decrease / (advance @ advance))
+    s = float(decrease.sum() / advance.sum())
     explained = 1.0 - float(((decrease - s * advance) ** 2).sum() / (decrease @ decrease))
     return ClosingFit(s, explained, len(t_us), int((~steady).sum()))
+
+
+def after_initialization(
+    state: SlamState, t_us: np.ndarray, ranges: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The samples from the initialization's last knot on, when the run goes beyond it (else all).
+
+    The initialization's knots rest on a few frames' baseline and fall behind an approach on every
+    swirl seed (knot 1 behind knot 0, §33, §59), which the closing rate would read as scale."""
+    m = state.num_init_chunks()
+    if len(state.traj) <= m + 1:
+        return t_us, ranges
+    keep = t_us >= int(state.traj.t_us[m])
+    return t_us[keep], ranges[keep]
 
 
 @dataclass(frozen=True)
@@ -208,7 +230,7 @@ def estimate_scale(state: SlamState, cfg: ScaleConfig) -> ScaleEstimate | None:
     if seq_ranges is None:
         raise ValueError("scale.source = 'range' but the sequence has no range.csv")
     t_us, ranges = samples_inside(state.traj, *seq_ranges)
-    fit = closing_scale(state.traj, t_us, ranges)
+    fit = closing_scale(state.traj, *after_initialization(state, t_us, ranges))
     if fit is not None and fit.scale > 0 and fit.explained >= cfg.closing_min_explained:
         jumps = f", {fit.jumps} jumps left out" if fit.jumps else ""
         source = f"range, closing rate ({fit.explained:.1%} explained{jumps})"
