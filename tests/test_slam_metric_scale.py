@@ -196,7 +196,7 @@ def test_range_scale_takes_the_closing_rate_where_it_explains_the_meter(synth):
     moved = dataclasses.replace(state, data=dataclasses.replace(state.data, ranges=(scene.frames_us, bumpy)))
     assert estimate_scale(moved, strict).source == "range, first surface"
     # A swirl: the ray sweeps the target's relief as the camera closes in, and the advances explain less
-    # than 0.9 of the meter but far more than an orbit's ≤ 0.24: still the closing rate (docs §42).
+    # than 0.9 of the meter but far more than an orbit's ≈ 0.01: still the closing rate (docs §42, §60).
     wobble = 0.3 * np.abs(np.diff(approach)).mean()
     swirl = approach + np.where(np.arange(len(approach)) % 2, wobble, -wobble)
     moved = dataclasses.replace(state, data=dataclasses.replace(state.data, ranges=(scene.frames_us, swirl)))
