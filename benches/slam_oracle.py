@@ -44,7 +44,7 @@ from evgs.slam.lie import se3_exp, se3_inverse, se3_log
 from evgs.slam.loss import event_loss, pointwise_error, predicted_events
 from evgs.slam.motion_search import EVAL_WINDOWS, fit, search_chunks
 from evgs.slam.optimize import StageSpec, fixed_windows, run_stage
-from evgs.slam.pipeline import initial_gaussians, new_state, pin_threads
+from evgs.slam.pipeline import new_state, pin_threads
 from evgs.slam.stages import set_brightness_reference, track
 from evgs.slam.state import SlamState, stage_seed
 from evgs.slam.trajectory import Trajectory
@@ -127,8 +127,9 @@ def main() -> None:
     cfg = dataclasses.replace(cfg, seq=str(seq.root))
     data = EventData.from_sequence(seq, cfg.data)
     pin_threads(cfg)  # as run_slam does
-    state = new_state(cfg, data)
-    start, m = args.start, state.num_init_chunks()
+    start = args.start
+    state = new_state(cfg, data, first=start)  # seeded in front of the start frame's camera
+    m = state.num_init_chunks()
     e = start + m  # the map's last chunk: tracking starts after it
     first = e if args.track_from < 0 else args.track_from
     if start < 0 or not 1 <= first <= e or first + args.track > data.n_chunks or (start and args.rates):
@@ -144,8 +145,6 @@ def main() -> None:
 
     if args.rates:
         console.print(search_refits(state, rel, [float(r) for r in args.rates.split(",")]))
-    if start:  # seeded in front of the start frame's camera
-        state.gaussians = initial_gaussians(cfg.gaussians, data, m, state.generator, first=start)
     state.traj = truth_until(e)
     spec = StageSpec(
         "init", e, cfg.init.num_opti_steps_for_init, data.span(start, e), cfg.data.training_batch_size,

@@ -17,7 +17,7 @@ from evgs.slam.guards import BrightnessAnchor  # noqa: E402
 from evgs.slam.lie import se3_exp, se3_inverse, se3_log  # noqa: E402
 from evgs.slam.loss import depth_variation, total_variation  # noqa: E402
 from evgs.slam.optimize import Convergence, StageSpec, loss_step, lr_boost, set_lr_boost  # noqa: E402
-from evgs.slam.pipeline import initial_gaussians, seeding_weights  # noqa: E402
+from evgs.slam.pipeline import initial_gaussians, new_state, seeding_weights  # noqa: E402
 from evgs.slam.pose_solver import prior_curvature, prior_weight  # noqa: E402
 from evgs.slam.stages import global_ba, map_window, track  # noqa: E402
 from evgs.slam.state import SlamState  # noqa: E402
@@ -137,6 +137,9 @@ def test_event_seeding_needs_the_depth_range_ahead_of_the_camera(synth):
         u = (means[:, 0] / z * cam.fx + cam.cx).floor().long()
         v = (means[:, 1] / z * cam.fy + cam.cy).floor().long()
         assert bool(active[v, u].all())
+        # new_state seeds this map: a run at first = 0, benches/slam_oracle.py at --start
+        seeded = new_state(dataclasses.replace(cfg, seed=0), data, first=first).gaussians
+        assert torch.equal(seeded["means"].detach(), means)
     with pytest.raises(ValueError, match="'box' seeding has no slab"):
         box = config("gaussians.init_seeding=box", "gaussians.init_tilt_deg=5")
         initial_gaussians(box.gaussians, data, 3, torch.Generator())

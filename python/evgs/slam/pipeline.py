@@ -34,11 +34,12 @@ from evgs.slam.trajectory import Trajectory, random_knots
 from evgs.slam.windows import EventData
 
 
-def new_state(cfg: Config, data: EventData) -> SlamState:
-    """Random Gaussians in the bounding box and near-identity knots at the initialization frames."""
+def new_state(cfg: Config, data: EventData, first: int = 0) -> SlamState:
+    """Random Gaussians in the bounding box and near-identity knots at the initialization frames; the
+    Gaussians seeded from chunks ``first`` on (``benches/slam_oracle.py --start``; a run starts at 0)."""
     generator = torch.Generator().manual_seed(cfg.seed)
     m = min(cfg.init.num_frames, data.n_chunks)
-    gaussians = initial_gaussians(cfg.gaussians, data, m, generator)
+    gaussians = initial_gaussians(cfg.gaussians, data, m, generator, first=first)
     knots = random_knots(m + 1, cfg.trajectory.init_pose_noise, generator)
     traj = Trajectory(data.frames_us[: m + 1], knots, cfg.trajectory.interpolation)
     anchor = BrightnessAnchor(cfg.guards.brightness_weight)
