@@ -234,6 +234,32 @@ def test_tracking_windows_reach_back_span_frames_and_end_at_the_new_frame(synth,
         config("tracking.span_frames=0")
 
 
+def test_lm_windows_are_drawn_once_per_frame_and_level(synth, monkeypatch):
+    """``tracking.lm_windows = n``: LM draws n windows once per resolution level of a tracked frame and
+    steps on them throughout, and still recovers the perturbed pose; 0 draws fresh ones every step."""
+    _, scene = synth
+    k = 4
+    T_gt = torch.as_tensor(scene.poses[k + 1])
+    start = T_gt @ se3_exp(torch.tensor([0.05, -0.04, 0.03, 0.02, -0.03, 0.02]).double())
+    drawn = record_windows(monkeypatch)
+    sets = ("tracking.solver=lm", "tracking.num_opti_steps=20", "tracking.mask_alpha=0.8")
+    for windows, coarse, draws in ((2, 1, [2]), (3, 2, [3, 3]), (0, 1, None)):
+        drawn.clear()
+        cfg = config(*sets, f"tracking.lm_windows={windows}", f"economy.coarse_factor={coarse}")
+        state = gt_state(synth, cfg, k + 1)
+        record = track(state, k, pose=start)
+        if windows:  # however many steps LM takes before it converges
+            assert [len(w.starts) for w in drawn] == draws, windows
+            widths = [w.frames.shape[-1] for w in drawn]
+            assert widths == sorted(set(widths)) and widths[-1] == state.data.camera.width  # coarse first
+        else:
+            assert [len(w.starts) for w in drawn] == [1] * record.iterations
+        err = pose_error(state.traj.knots()[k + 1], T_gt.numpy())[1]
+        assert err < 0.5 * pose_error(start, T_gt.numpy())[1], (windows, err)
+    with pytest.raises(ConfigError, match="tracking.lm_windows must be >= 0"):
+        config("tracking.lm_windows=-1")
+
+
 def test_lm_velocity_prior_pulls_towards_the_prediction(synth):
     """``tracking.velocity_prior`` is a pull towards where the knot started (the constant-velocity
     prediction): off, LM recovers the true pose; at weight 1 it stops part-way (the data's curvature and

@@ -87,6 +87,7 @@ class TrackingConfig:
     velocity_prior_floor: float
     velocity_prior_frames: int
     span_frames: int
+    lm_windows: int
 
 
 @dataclass(frozen=True)
@@ -337,6 +338,8 @@ def _check_ranges(cfg: Config, source: str) -> None:
         problems.append(
             "tracking.velocity_prior_floor must be in [0, 1] (a fraction of the best-seen coordinate)"
         )
+    if cfg.tracking.lm_windows < 0:
+        problems.append("tracking.lm_windows must be >= 0 (0 = fresh windows every LM step)")
     if cfg.tracking.velocity_prior_frames < 0:
         problems.append("tracking.velocity_prior_frames must be >= 0 (0 = the whole run)")
     if g.init_fill_gap < 0:

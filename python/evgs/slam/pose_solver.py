@@ -13,6 +13,11 @@ batched render, no backward pass), ``J``, the damped normal equations ``(JᵀWJ 
 windows: accepted (λ shrinks) if the loss falls, rejected (λ grows) otherwise. Only the event term of
 eq. 8 is minimised: the SSIM term regularises the map's brightness, which tracking does not change.
 
+``tracking.lm_windows`` = n > 0 draws n windows once per tracked frame (at each resolution level) and
+runs every iteration on them instead of on fresh ones: the steps then descend one objective, where fresh
+windows move the optimum, with its noise, from step to step and λ adapts to that noise (swirl_good:
+docs/ablations.md §61).
+
 ``tracking.velocity_prior`` = w adds ``w · δᵀ D δ`` for the increment ``δ`` from the constant-velocity
 prediction, ``D`` the diagonal of the data rows' own Gauss–Newton matrix ``H``: the pull is as firm,
 relative to the data, along every coordinate. Without it, tracking an orbit takes slightly too small a
@@ -174,9 +179,15 @@ def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None =
     )
     coarse_end = int(econ.coarse_fraction * spec.iterations) if econ.coarse_factor > 1 else 0
     t0, n_events, loss, stopped, it = time.perf_counter(), 0, float("nan"), False, -1
+    fixed: dict[int, Windows] = {}  # tracking.lm_windows: this frame's windows at each resolution level
     for it in range(spec.iterations):
         factor = econ.coarse_factor if it < coarse_end else 1
-        win = data.windows(sampler, spec.batch, factor)
+        if not tc.lm_windows:
+            win = data.windows(sampler, spec.batch, factor)
+        elif factor in fixed:
+            win = fixed[factor]
+        else:
+            win = fixed[factor] = data.windows(sampler, tc.lm_windows, factor)
         res = residuals(state, knot, delta + variants, win, factor, spec.span, unit)
         mask = valid_mask(res.alpha[0, 0], res.alpha[0, 1], tc.mask_border // factor, tc.mask_alpha)
         if cfg.loss.event_mask_threshold >= 0:
