@@ -10,10 +10,11 @@ render unchanged. So a run ends with one similarity that makes its outputs metri
     as the camera advances along its optical axis (exact for a surface facing the camera, or a motion
     along the axis: an approach; a descent's glide, 20° off the axis, over level ground would read 6.5 %
     low, and the simulated terrain averages out to 0.999 over the run, docs/ablations.md §61). ``s`` =
-    the meter's total decrease over the camera's total advance, from the
-    initialization's last knot on (:func:`after_initialization`). It needs the trajectory only, and the
-    trajectory is what must come out metric: the map's depth can be a few per cent off its trajectory
-    (docs/ablations.md §26, §28). Used when the advances explain at least
+    the meter's total decrease over the camera's total advance, from the initialization's last knot on
+    (:func:`after_initialization`). It needs the trajectory only, and the trajectory is what must come
+    out metric: the map's depth can be a few per cent off its trajectory (docs/ablations.md §26, §28).
+    Its error is the run's own share of travel along the axis: a descent whose glide comes out 27° off
+    the axis instead of 20° reads 4.5 % short (§62). Used when the advances explain at least
     ``scale.closing_min_explained`` of the decreases' energy (≈ 1 on approaches and descents).
   - the *first surface* (:func:`range_scale`), otherwise (an orbit: the range changes with the target's
     shape while the camera hardly advances): the map's first surface on that ray at the same times
