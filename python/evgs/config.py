@@ -47,6 +47,7 @@ class TrajectoryConfig:
     pose_lr: float
     init_pose_noise: float
     smoothness: float
+    smoothing_time: float
 
 
 @dataclass(frozen=True)
@@ -305,6 +306,8 @@ def _check_ranges(cfg: Config, source: str) -> None:
         problems.append(
             "scale.range_weight, scale.rate_weight and init.search_range_weight must be >= 0 (0 = off)"
         )
+    if cfg.trajectory.smoothing_time < 0:
+        problems.append("trajectory.smoothing_time must be >= 0 (seconds; 0 = off)")
     if not 0 <= cfg.scale.closing_min_explained <= 1:
         problems.append("scale.closing_min_explained must be in [0, 1]")
     if cfg.scale.source == "target_size" and cfg.scale.target_size <= 0:

@@ -28,6 +28,7 @@ from evgs.slam.metric_scale import apply_scale, estimate_scale, range_agreement
 from evgs.slam.optimize import StageReporter
 from evgs.slam.range_prior import RangePrior
 from evgs.slam.run_dir import RunDir
+from evgs.slam.smoothing import smooth_trajectory
 from evgs.slam.stages import global_ba, initialize, search, start_from, step_chunk
 from evgs.slam.state import SlamState, StageRecord
 from evgs.slam.trajectory import Trajectory, random_knots
@@ -224,6 +225,10 @@ def run_slam(
             step_chunk(state, note, reporter)
             boundary()
         if not state.position.finished:
+            tau = cfg.trajectory.smoothing_time
+            if tau > 0:
+                moved = smooth_trajectory(state.traj, tau)
+                say(run, log, f"smoothed the tracked positions (τ = {tau:g} s): moved {moved:.4f} at most")
             note(global_ba(state, final=True, reporter=reporter))
             state.position.finished = True
             boundary(force=True)
