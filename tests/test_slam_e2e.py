@@ -64,6 +64,9 @@ def test_run_directory_is_complete(full_run: Path, seq_dir: Path):
     assert np.allclose(T[:, 3], [0, 0, 0, 1])
     cfg = load_config(full_run / "config.toml")
     assert Path(cfg.seq) == seq_dir.resolve()
+    # the synthetic presets smooth the tracked positions before the final global BA
+    assert cfg.trajectory.smoothing_time > 0
+    assert "smoothed the tracked positions" in (full_run / "log.txt").read_text()
 
 
 def test_estimate_beats_constant_pose_and_map_renders(full_run: Path, seq_dir: Path):
