@@ -1,7 +1,8 @@
 """The SLAM loop over a sequence: the start (motion search, initialization, optionally in branches),
 then per chunk tracking, local BA every ``mapping.every`` frames and global BA every
-``global_ba.every`` frames, and a final global BA — after, with ``trajectory.smoothing_time``, the
-tracked positions are smoothed (:mod:`evgs.slam.smoothing`), so that the map is refitted to that path.
+``global_ba.every`` frames, and a final global BA. With ``trajectory.smoothing_time`` the tracked
+positions are smoothed just before it (:mod:`evgs.slam.smoothing`), so that it refits the map to the
+smoothed path.
 
 The state is snapshotted at every frame boundary and written to ``checkpoints/`` every
 ``output.checkpoint_every`` frames; Ctrl-C (KeyboardInterrupt) writes the last boundary's snapshot, so
