@@ -47,8 +47,8 @@ def smooth_positions(t_s: np.ndarray, positions: np.ndarray, tau_s: float) -> np
     D = second_differences(t_s)
     h = np.diff(t_s)
     share = 0.5 * (h[:-1] + h[1:]) / h.mean()
-    A = sp.identity(len(p), format="csc") + tau_s**4 * (D.T @ sp.diags(share) @ D)
-    return np.asarray(spsolve(A.tocsc(), p)).reshape(p.shape)
+    A = (sp.identity(len(p)) + tau_s**4 * (D.T @ sp.diags(share) @ D)).tocsc()
+    return np.asarray(spsolve(A, p)).reshape(p.shape)
 
 
 @torch.no_grad()
