@@ -108,6 +108,7 @@ class GlobalBAConfig:
     every: int
     num_opti_steps: int
     num_opti_steps_final: int
+    final_early_stop: bool
     lr_boost: float
     tv_weight: float
     max_n_winsize: int

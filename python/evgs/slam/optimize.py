@@ -55,6 +55,8 @@ class StageSpec:
     # False: a fixed schedule, no densification, pruning or early switches, so the result is a smooth
     # function of the fixed knots (the motion search compares refits of nearby motions)
     adaptive: bool = True
+    # False: economy's convergence stop never ends the stage (the coarse level still hands over on it)
+    early_stop: bool = True
 
 
 @dataclass
@@ -271,7 +273,7 @@ def run_stage(state: SlamState, spec: StageSpec, reporter: StageReporter | None 
         if spec.adaptive and not replayed and stopper.update(loss):
             if factor > 1:  # the coarse level has converged: go on at full resolution
                 coarse_end, stopper = it + 1, Convergence(econ.patience, econ.min_rel_change)
-            elif it + 1 >= econ.min_fraction * spec.iterations and spec.lr_boost == 1.0:
+            elif spec.early_stop and it + 1 >= econ.min_fraction * spec.iterations and spec.lr_boost == 1.0:
                 stopped = True  # (a decaying schedule runs to its end: it plans on the small final rates)
                 break
     if spec.train_gaussians and spec.adaptive and step is not None:

@@ -188,6 +188,6 @@ def global_ba(state: SlamState, final: bool, reporter: StageReporter | None = No
         stage, _seq_frame(state, n), iters, state.data.span(0, n), cfg.data.training_batch_size,
         stage_seed(cfg.seed, stage, n), range(1, n + 1), range(n + 1), train_gaussians=True, anchored=True,
         lr_boost=cfg.global_ba.lr_boost, tv_weight=cfg.global_ba.tv_weight,
-        max_window=cfg.global_ba.max_n_winsize,
+        max_window=cfg.global_ba.max_n_winsize, early_stop=cfg.global_ba.final_early_stop or not final,
     )  # fmt: skip
     return run_stage(state, spec, reporter)
