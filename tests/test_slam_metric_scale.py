@@ -12,6 +12,7 @@ pytest.importorskip("evgs.render")
 
 from evgs.config import load_config  # noqa: E402
 from evgs.render import render  # noqa: E402
+from evgs.slam import checkpoint  # noqa: E402
 from evgs.slam.gaussians import Gaussians, quat_to_rotmat  # noqa: E402
 from evgs.slam.lie import se3_exp  # noqa: E402
 from evgs.slam.metric_scale import (  # noqa: E402
@@ -23,10 +24,11 @@ from evgs.slam.metric_scale import (  # noqa: E402
     map_extent,
     range_agreement,
     range_scale,
+    read_surface_scale,
 )
-from evgs.slam.pipeline import check_range_meter, write_metric_scale  # noqa: E402
+from evgs.slam.pipeline import check_range_meter, run_slam, write_metric_scale  # noqa: E402
 from evgs.slam.run_dir import RunDir  # noqa: E402
-from evgs.slam.state import SlamState  # noqa: E402
+from evgs.slam.state import Position, SlamState  # noqa: E402
 from evgs.slam.trajectory import Trajectory  # noqa: E402
 from slam_synth import gt_state, make_sequence  # noqa: E402
 
@@ -204,6 +206,66 @@ def test_range_scale_takes_the_closing_rate_where_it_explains_the_meter(synth):
     assert fit is not None and 0.5 < fit.explained < 0.9
     est = estimate_scale(moved, cfg)
     assert est.source.startswith("range, closing rate") and est.scale == pytest.approx(fit.scale)
+
+
+def test_the_first_surface_read_before_the_final_ba_is_the_one_applied(synth):
+    _, scene = synth
+    state, ranges = state_in_map_units(synth, "scale.source=range")
+    orbit = dataclasses.replace(state, data=dataclasses.replace(state.data, ranges=(scene.frames_us, ranges)))
+    before = read_surface_scale(orbit)
+    assert before is not None and before.scale == pytest.approx(TRUE_SCALE, rel=1e-4)
+    assert before.source == "range, first surface, read before the final BA"
+    # The final BA then moves the map's surface against the cameras (here: the map grows 10 % about the
+    # origin, the knots stay): the read kept is the one before it; without one, the map is read now.
+    orbit.surface_scale = before
+    with torch.no_grad():
+        orbit.gaussians["means"].mul_(1.1)
+    assert estimate_scale(orbit, orbit.cfg.scale) is before
+    now = estimate_scale(dataclasses.replace(orbit, surface_scale=None), orbit.cfg.scale)
+    assert now.source == "range, first surface" and abs(now.scale / TRUE_SCALE - 1) > 0.02
+    # A finished run's checkpoint keeps the read; one written before the key existed has none.
+    snap = checkpoint.snapshot(orbit)
+    assert checkpoint.restore(snap, orbit.cfg, orbit.data).surface_scale == before
+    del snap["surface_scale"]
+    assert checkpoint.restore(snap, orbit.cfg, orbit.data).surface_scale is None
+    # Nothing to read: no meter, another source, or a map that covers no sample's ray.
+    assert read_surface_scale(state) is None
+    other = load_config("synthetic/tiny", ["scale.source=target_size", "scale.target_size=1.0"])
+    assert read_surface_scale(dataclasses.replace(orbit, cfg=other)) is None
+    bare = load_config("synthetic/tiny", ["scale.source=range", "scale.min_alpha=1.1"])
+    assert read_surface_scale(dataclasses.replace(orbit, cfg=bare)) is None
+
+
+class SeeFinalBA:
+    """A reporter that notes the state's first-surface read when the final global BA begins."""
+
+    def __init__(self):
+        self.read_at_final = "not reached"
+
+    def advance(self, state, spec, it, loss, events, seconds) -> None:
+        if spec.stage == "final" and self.read_at_final == "not reached":
+            self.read_at_final = state.surface_scale
+
+    def stage_end(self, state, spec, record) -> None:
+        pass
+
+
+def test_a_run_applies_the_first_surface_it_read_before_its_final_ba(synth, tmp_path):
+    _, scene = synth
+    state, ranges = state_in_map_units(
+        synth, "scale.source=range", "global_ba.num_opti_steps_final=3", "output.diagnostics_every=100"
+    )
+    state = dataclasses.replace(
+        state, data=dataclasses.replace(state.data, ranges=(scene.frames_us, ranges)),
+        position=Position(initialized=True, next_chunk=state.data.n_chunks),
+    )  # fmt: skip
+    seen = SeeFinalBA()
+    run = RunDir.create(tmp_path, "synth", state.cfg)
+    run_slam(state, run, seen)
+    assert seen.read_at_final is not None and seen.read_at_final.scale == pytest.approx(TRUE_SCALE, rel=1e-4)
+    assert state.metric["metric_scale"] == seen.read_at_final.scale
+    assert state.metric["metric_scale_source"].endswith("read before the final BA")
+    assert checkpoint.load(run.checkpoint_path)["surface_scale"]["scale"] == seen.read_at_final.scale
 
 
 def flat_gaussian(depth: float, opacity: float, lateral: float = 0.0) -> dict[str, list]:

@@ -2,8 +2,9 @@
 
 Taken only between frames, where no optimizer or densification statistics are alive (every stage
 builds its own Adam and strategy, and the trajectory is rebased), so the state is the trajectory
-knots, the Gaussians, the random generator, the brightness reference and the position in the
-sequence. Window samplers are re-seeded per stage from the run seed, so they need no state.
+knots, the Gaussians, the random generator, the brightness reference, the position in the sequence
+and, once read, the first-surface scale (read before the final global BA: the final map reads
+another). Window samplers are re-seeded per stage from the run seed, so they need no state.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from evgs.config import Config
 from evgs.io_util import atomic_path
 from evgs.slam.gaussians import Gaussians
 from evgs.slam.guards import BrightnessAnchor
+from evgs.slam.metric_scale import ScaleEstimate
 from evgs.slam.range_prior import RangePrior
 from evgs.slam.state import Position, SlamState, StageRecord
 from evgs.slam.trajectory import Trajectory
@@ -37,6 +39,7 @@ def snapshot(state: SlamState) -> dict:
         "position": asdict(state.position),
         "history": [asdict(r) for r in state.history],
         "dropped_events": state.data.dropped,
+        "surface_scale": None if state.surface_scale is None else asdict(state.surface_scale),
     }
 
 
@@ -72,4 +75,6 @@ def restore(snap: dict, cfg: Config, data: EventData) -> SlamState:
         position=Position(**snap["position"]),
         history=[StageRecord(**r) for r in snap["history"]],
         range_prior=RangePrior.for_run(cfg, data),
+        # .get: a checkpoint written before the key existed read the scale at the end (the fallback)
+        surface_scale=None if snap.get("surface_scale") is None else ScaleEstimate(**snap["surface_scale"]),
     )

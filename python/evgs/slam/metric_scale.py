@@ -21,13 +21,17 @@ render unchanged. So a run ends with one similarity that makes its outputs metri
     (:func:`first_surface`) is the same distance in map units. ``s`` = the median of their ratios over
     the samples whose ray the map covers (opacity ≥ ``scale.min_alpha``), robust to samples that hit a
     part of the target the map lacks. Not the rendered expected depth: a surface the map holds
-    half-transparent mixes what lies behind it into that (4–8 % deeper on docking_good, §26).
+    half-transparent mixes what lies behind it into that (4–8 % deeper on docking_good, §26). Read
+    before the final global BA (:func:`read_surface_scale`), which keeps the run's scale to 0.06 % but
+    refits the map to windows from the whole run and moves its surface against the cameras: on the
+    orbit the read after it is 5.2 % off, before it 2.6 % (3 seeds, docs/ablations.md §64–65).
 - ``target_size``: the map's largest extent (2nd–98th percentile of the opaque Gaussians' centres along
   their principal axes) is ``scale.target_size`` metres.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -224,7 +228,23 @@ def map_extent(gaussians: Gaussians, min_opacity: float = 0.5) -> float:
     return float((q[1] - q[0]).max())
 
 
+def read_surface_scale(state: SlamState) -> ScaleEstimate | None:
+    """:func:`range_scale` of the state as it stands, for a run with ``scale.source = "range"`` and a
+    range meter; None otherwise, or when the map covers none of the samples (the final read then
+    reports why)."""
+    if state.cfg.scale.source != "range" or state.data.ranges is None:
+        return None
+    try:
+        est = range_scale(state, *state.data.ranges, state.cfg.scale.min_alpha)
+    except ValueError:
+        return None
+    return dataclasses.replace(est, source=f"{est.source}, read before the final BA")
+
+
 def estimate_scale(state: SlamState, cfg: ScaleConfig) -> ScaleEstimate | None:
+    """The scale as ``cfg.source`` says. With ``range``, the closing rate when the run's advances explain
+    the meter, else the first surface: ``state.surface_scale`` (read before the final BA) if there is
+    one, else read now."""
     if cfg.source == "none":
         return None
     if cfg.source == "target_size":
@@ -238,7 +258,7 @@ def estimate_scale(state: SlamState, cfg: ScaleConfig) -> ScaleEstimate | None:
         jumps = f", {fit.jumps} jumps left out" if fit.jumps else ""
         source = f"range, closing rate ({fit.explained:.1%} explained{jumps})"
         return ScaleEstimate(fit.scale, fit.samples, source)
-    return range_scale(state, t_us, ranges, cfg.min_alpha)
+    return state.surface_scale or range_scale(state, t_us, ranges, cfg.min_alpha)
 
 
 @torch.no_grad()

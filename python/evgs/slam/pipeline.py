@@ -2,7 +2,8 @@
 then per chunk tracking, local BA every ``mapping.every`` frames and global BA every
 ``global_ba.every`` frames, and a final global BA. With ``trajectory.smoothing_time`` the tracked
 positions are smoothed just before it (:mod:`evgs.slam.smoothing`), so that it refits the map to the
-smoothed path.
+smoothed path. With a range meter, the map's first-surface scale is read before both
+(:func:`~evgs.slam.metric_scale.read_surface_scale`).
 
 The state is snapshotted at every frame boundary and written to ``checkpoints/`` every
 ``output.checkpoint_every`` frames; Ctrl-C (KeyboardInterrupt) writes the last boundary's snapshot, so
@@ -26,7 +27,7 @@ from evgs.slam import checkpoint
 from evgs.slam.branches import run_branches
 from evgs.slam.gaussians import Gaussians
 from evgs.slam.guards import BrightnessAnchor
-from evgs.slam.metric_scale import apply_scale, estimate_scale, range_agreement
+from evgs.slam.metric_scale import apply_scale, estimate_scale, range_agreement, read_surface_scale
 from evgs.slam.optimize import StageReporter
 from evgs.slam.range_prior import RangePrior
 from evgs.slam.run_dir import RunDir
@@ -227,6 +228,7 @@ def run_slam(
             step_chunk(state, note, reporter)
             boundary()
         if not state.position.finished:
+            state.surface_scale = read_surface_scale(state)  # before the smoother: the map fits these cameras
             tau = cfg.trajectory.smoothing_time
             if tau > 0:
                 moved = smooth_trajectory(state.traj, tau)

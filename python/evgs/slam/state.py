@@ -8,6 +8,7 @@ continuation of a run identical to an uninterrupted one.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -18,6 +19,9 @@ from evgs.slam.guards import BrightnessAnchor
 from evgs.slam.range_prior import RangePrior
 from evgs.slam.trajectory import Trajectory
 from evgs.slam.windows import EventData
+
+if TYPE_CHECKING:
+    from evgs.slam.metric_scale import ScaleEstimate
 
 STAGES = ("init", "track", "map", "gba", "final", "search", "branch")
 
@@ -66,6 +70,7 @@ class SlamState:
     history: list[StageRecord] = field(default_factory=list)
     metric: dict = field(default_factory=dict)  # the metric-scale estimate applied to the outputs
     range_prior: RangePrior | None = None  # the range meter's loss term (scale.range_weight > 0)
+    surface_scale: ScaleEstimate | None = None  # the first-surface scale read before the final global BA
     branch: str = ""  # a branch of the run's start (evgs.slam.branches) names its diagnostics; "" = the run
 
     def num_init_chunks(self) -> int:
