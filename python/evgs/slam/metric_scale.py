@@ -24,7 +24,7 @@ render unchanged. So a run ends with one similarity that makes its outputs metri
     half-transparent mixes what lies behind it into that (4–8 % deeper on docking_good, §26). Read
     before the final global BA (:func:`read_surface_scale`), which keeps the run's scale to 0.06 % but
     refits the map to windows from the whole run and moves its surface against the cameras: on the
-    orbit the read after it is 5.2 % off, before it 2.6 % (3 seeds, docs/ablations.md §64–65).
+    orbit the read after it is 5.0 % off, before it 3.1 % (3 seeds, docs/ablations.md §65).
 - ``target_size``: the map's largest extent (2nd–98th percentile of the opaque Gaussians' centres along
   their principal axes) is ``scale.target_size`` metres.
 """
