@@ -31,9 +31,8 @@ render unchanged. So a run ends with one similarity that makes its outputs metri
 
 from __future__ import annotations
 
-import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -238,7 +237,7 @@ def read_surface_scale(state: SlamState) -> ScaleEstimate | None:
         est = range_scale(state, *state.data.ranges, state.cfg.scale.min_alpha)
     except ValueError:
         return None
-    return dataclasses.replace(est, source=f"{est.source}, read before the final BA")
+    return replace(est, source=f"{est.source}, read before the final BA")
 
 
 def estimate_scale(state: SlamState, cfg: ScaleConfig) -> ScaleEstimate | None:
@@ -258,7 +257,9 @@ def estimate_scale(state: SlamState, cfg: ScaleConfig) -> ScaleEstimate | None:
         jumps = f", {fit.jumps} jumps left out" if fit.jumps else ""
         source = f"range, closing rate ({fit.explained:.1%} explained{jumps})"
         return ScaleEstimate(fit.scale, fit.samples, source)
-    return state.surface_scale or range_scale(state, t_us, ranges, cfg.min_alpha)
+    if state.surface_scale is not None:
+        return state.surface_scale
+    return range_scale(state, t_us, ranges, cfg.min_alpha)
 
 
 @torch.no_grad()
