@@ -88,3 +88,24 @@ def fake_run(
     images = np.stack([0.5 + 0.4 * np.sin(6 * xx + 0.2 * i) * np.cos(5 * yy) for i in range(n)])
     seq = write_fake_sequence(root, name, T_gt, images, source=source)
     return write_fake_run(root, seq, perturb(T_gt, random_sim3(rng), rng, pos_sigma=0.01, rot_sigma=0.01))
+
+
+SH_C0 = 0.28209479177387814
+FIELDS = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
+          "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]  # fmt: skip
+
+
+def write_ply(path, means, log_scales, quats_wxyz, opacity_logits, grey):
+    """A 3DGS PLY (grey colour in the DC band, no higher SH) of the given Gaussians."""
+    rows = np.zeros(len(means), dtype=[(f, "<f4") for f in FIELDS])
+    for i, a in enumerate("xyz"):
+        rows[a] = means[:, i]
+        rows[f"scale_{i}"] = log_scales[:, i]
+    for i in range(3):
+        rows[f"f_dc_{i}"] = (grey - 0.5) / SH_C0
+    for i in range(4):
+        rows[f"rot_{i}"] = quats_wxyz[:, i]
+    rows["opacity"] = opacity_logits
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(rows)}"]
+    header += [f"property float {f}" for f in FIELDS] + ["end_header"]
+    path.write_bytes(("\n".join(header) + "\n").encode() + rows.tobytes())

@@ -9,7 +9,7 @@ renders reproduce the GT images.
 
 import numpy as np
 import pytest
-from eval_synth import orbit, perturb, random_sim3, write_fake_run, write_fake_sequence
+from eval_synth import orbit, perturb, random_sim3, write_fake_run, write_fake_sequence, write_ply
 from scipy.spatial.transform import Rotation
 
 render_mod = pytest.importorskip("evgs.render")
@@ -20,25 +20,6 @@ from evgs.data.sequence import Camera  # noqa: E402
 from evgs.eval.render_gt import gt_poses_in_map, render_at_gt_frames  # noqa: E402
 from evgs.eval.run import evaluate_run  # noqa: E402
 from evgs.geometry import invert_pose  # noqa: E402
-
-SH_C0 = 0.28209479177387814
-FIELDS = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
-          "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]  # fmt: skip
-
-
-def write_ply(path, means, log_scales, quats_wxyz, opacity_logits, grey):
-    rows = np.zeros(len(means), dtype=[(f, "<f4") for f in FIELDS])
-    for i, a in enumerate("xyz"):
-        rows[a] = means[:, i]
-        rows[f"scale_{i}"] = log_scales[:, i]
-    for i in range(3):
-        rows[f"f_dc_{i}"] = (grey - 0.5) / SH_C0
-    for i in range(4):
-        rows[f"rot_{i}"] = quats_wxyz[:, i]
-    rows["opacity"] = opacity_logits
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(rows)}"]
-    header += [f"property float {f}" for f in FIELDS] + ["end_header"]
-    path.write_bytes(("\n".join(header) + "\n").encode() + rows.tobytes())
 
 
 class Scene:

@@ -165,3 +165,27 @@ def test_sun_casts_shadows():
     shadowed, lit = np.round(project(cam, T, np.array([[-0.2, 0.1, 0.0], [1.5, -0.5, 0.0]]))).astype(int)
     assert img[lit[1], lit[0]] == pytest.approx(0.7, abs=0.05)  # paint albedo under a zenith sun
     assert img[shadowed[1], shadowed[0]] == 0.0  # no fill, no ambient: pure shadow
+
+
+def test_depth_is_the_camera_z_of_the_nearest_surface():
+    """The depth pass against ray–plane intersections (tilted view: z-depth, not ray length), the ball
+    in front of the plane where it hides it, and inf where nothing is hit."""
+    floor = trimesh.creation.box(extents=(4.0, 4.0, 0.002))
+    floor.apply_translation([0.0, 0.0, -0.001])  # top face at z = 0
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    ball.apply_translation([0.0, 0.0, 0.3])
+    scene = build_scene([(floor, MATERIAL_IDS["paint"]), (ball, MATERIAL_IDS["paint"])])
+    cam = SimConfig("t").with_resolution(160, 120).camera
+    T = look_at(np.array([3.0, 1.0, 2.5]))
+    with Renderer(scene, cam, FLAT, msaa=0) as r:
+        z = r.depth(T)
+    rays = np.linalg.solve(cam.K, np.array([[50.0, 40.0, 1.0], [150.0, 100.0, 1.0], [30.0, 110.0, 1.0]]).T)
+    world = T[:3, :3] @ rays  # direction per unit of camera z
+    t = -T[2, 3] / world[2]  # camera z where the ray meets z = 0
+    np.testing.assert_allclose(z[[40, 100, 110], [50, 150, 30]], t, rtol=1e-4)
+    centre = np.round(project(cam, T, np.array([[0.0, 0.0, 0.3]]))[0]).astype(int)
+    to_ball = np.linalg.norm(T[:3, 3] - [0.0, 0.0, 0.3])
+    assert z[centre[1], centre[0]] == pytest.approx(to_ball - 0.3, rel=0.01)  # the ball's near side
+    away = look_at(np.array([3.0, 0.0, 5.0]), np.array([8.0, 0.0, 9.0]))
+    with Renderer(scene, cam, FLAT, msaa=0) as r:
+        assert np.isinf(r.depth(away)).all()  # looking away from everything

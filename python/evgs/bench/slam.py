@@ -214,7 +214,7 @@ def evaluate(run_dir: Path, images: bool) -> Row:
     """The suite's metrics of one finished run (also saved as ``run_dir/eval/metrics.json``)."""
     from evgs.eval.run import evaluate_run, save_metrics
 
-    ev = evaluate_run(run_dir, images=images)
+    ev = evaluate_run(run_dir, images=images, depth=images)
     save_metrics(ev, run_dir / "eval" / "metrics.json")
     metrics = json.loads((run_dir / "metrics.json").read_text())
     s = ev.traj.summary()
@@ -227,6 +227,7 @@ def evaluate(run_dir: Path, images: bool) -> Row:
     img = ev.images.summary() if ev.images is not None else {}
     for k in ("psnr_db", "ssim", "lpips"):
         row[k] = float(img.get(k, math.nan))
+    row["depth_err_pct"] = ev.depth.summary()["depth_err_pct"] if ev.depth is not None else math.nan
     seconds = metrics.get("seconds")
     row["s_per_frame"] = seconds / frames if seconds is not None and frames else math.nan
     scale = metrics.get("metric_scale")

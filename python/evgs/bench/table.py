@@ -20,7 +20,7 @@ RUN_COLUMNS = [
     "preset", "seed", "lighting", "status", "error", "run_dir", "frames", "ate_rmse", "extent", "ate_pct",
     "drift_deg", "ate_x", "ate_y", "ate_z", "rpe_trans_rmse", "rpe_rot_rmse_deg", "psnr_db", "ssim",
     "lpips", "s_per_frame", "wall_s", "peak_rss_gib", "metric_scale", "sim3_scale", "scale_err_pct",
-    "range_map_drift_pct",
+    "range_map_drift_pct", "depth_err_pct",
 ]  # fmt: skip
 
 
@@ -47,6 +47,7 @@ METRICS = [
     Metric("peak_rss_gib", "Peak GiB", ".2f"),
     Metric("scale_err_pct", "Scale err %", ".1f"),
     Metric("range_map_drift_pct", "Map drift %", ".1f"),
+    Metric("depth_err_pct", "Depth err %", ".1f"),
 ]
 
 
@@ -79,7 +80,9 @@ DEFINITIONS = (
     "ATE: RMSE of positions after Sim(3) alignment (per axis x, y, z too); extent: the largest distance "
     "between two ground-truth positions of the evaluated frames; drift: rotation error of the last frame "
     "after aligning the first poses; s/frame: the run's own stage time per frame; peak: the run process's "
-    "maximum RSS; scale err: |Sim(3) scale − 1| of runs with metric outputs. Values: mean ± sample standard "
+    "maximum RSS; scale err: |Sim(3) scale − 1| of runs with metric outputs; depth err: the map's median "
+    "depth over the simulated scene's from the ground-truth viewpoints, minus 1 (< 0: nearer the cameras). "
+    "Values: mean ± sample standard "
     "deviation over the successful runs of each preset. A target passes (✓) when every run of the preset "
     "succeeded and the mean meets it; – = not applicable or not measured."
 )

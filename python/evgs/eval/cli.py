@@ -14,14 +14,14 @@ if TYPE_CHECKING:
     from evgs.eval.run import RunEvaluation
 
 # Columns of the printed comparison table (the CSV has every summary column).
-TABLE_COLUMNS = ["run", "frames", "ate_rmse", "drift_deg", "psnr_db", "lpips", "ssim", "rpe_trans_rmse",
-                 "elope_score"]  # fmt: skip
+TABLE_COLUMNS = ["run", "frames", "ate_rmse", "drift_deg", "psnr_db", "lpips", "ssim", "depth_err_pct",
+                 "rpe_trans_rmse", "elope_score"]  # fmt: skip
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "eval",
-        help="evaluate SLAM runs against ground truth (ATE, drift, RPE, PSNR/SSIM/LPIPS, ELOPE score)",
+        help="evaluate SLAM runs against ground truth (ATE, drift, RPE, PSNR/SSIM/LPIPS, depth, ELOPE score)",
         description="Evaluate run directories: writes <run>/eval/ (metrics.json, figures) and "
         "<run>/report.md + report.html, and prints one comparison table.",
     )
@@ -37,6 +37,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "estimate, so ground truth is needed, as in the paper)",
     )
     p.add_argument("--no-images", action="store_true", help="skip rendering and image metrics")
+    p.add_argument(
+        "--no-depth", action="store_true", help="skip the map's depth against the simulated scene's"
+    )
     p.add_argument(
         "--image-poses",
         choices=["estimate", "gt"],
@@ -75,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     for run_dir in args.runs:
         ev = evaluate_run(
             run_dir, images=not args.no_images, elope=args.elope, with_scale=not args.se3,
-            rpe_delta_m=args.rpe_delta_m, image_poses=args.image_poses,
+            rpe_delta_m=args.rpe_delta_m, image_poses=args.image_poses, depth=not args.no_depth,
         )  # fmt: skip
         save_metrics(ev, run_dir / "eval" / "metrics.json")
         if not args.no_report:

@@ -123,12 +123,30 @@ def plot_range_agreement(
     return _save(fig, path)
 
 
+def plot_depth_error(frames: np.ndarray, rel: np.ndarray, coverage: np.ndarray, path: Path) -> Path:
+    """The map's depth against the scene's per frame (median relative error, signed), with the share of
+    the target the map covers below: a map that sits ever nearer the cameras shows as a falling line."""
+    fig = Figure(figsize=(7, 4.5))
+    top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=(2, 1))
+    top.plot(frames, rel * 100.0, color="tab:red")
+    top.axhline(0.0, color="gray", linewidth=0.8)
+    top.set_ylabel("depth error [%]")
+    top.set_title("Map depth against the scene (median of D_map / D_gt − 1; < 0: nearer the camera)")
+    bottom.plot(frames, coverage * 100.0, color="tab:blue")
+    bottom.set_ylabel("coverage [%]")
+    bottom.set_ylim(0, 100)
+    bottom.set_xlabel("frame")
+    for ax in (top, bottom):
+        ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
 def plot_run(ev: RunEvaluation, out_dir: Path) -> dict[str, Path]:
     """All figures of a :class:`evgs.eval.run.RunEvaluation` into ``out_dir``; returns name → path."""
     tr = ev.traj
     t = ev.assoc.t - ev.assoc.t[0]
     tv, v_gt, v_est = ev.velocities()
-    return {
+    figures = {
         "trajectory": plot_trajectory_3d(tr.p_gt, tr.p_est, out_dir / "trajectory_3d.png", ev.sequence.name),
         "translation": plot_translation(t, tr.p_gt, tr.p_est, out_dir / "translation.png"),
         "rpy": plot_ypr(t, tr.ypr_gt_deg, tr.ypr_est_deg, out_dir / "rpy.png"),
@@ -137,3 +155,7 @@ def plot_run(ev: RunEvaluation, out_dir: Path) -> dict[str, Path]:
         ),
         "velocity": plot_velocity(tv - ev.assoc.t[0], v_gt, v_est, out_dir / "velocity.png", ev.elope_score),
     }
+    if ev.depth is not None:
+        d = ev.depth
+        figures["depth_error"] = plot_depth_error(d.frames, d.rel, d.coverage, out_dir / "depth_error.png")
+    return figures

@@ -105,6 +105,22 @@ def build_blocks(ev: RunEvaluation, figures: dict[str, Path]) -> list[Block]:
                 ],
             ),
         ]
+    if ev.depth is not None:
+        d = ev.depth.summary()
+        blocks += [
+            ("h2", "Map depth against the simulated scene (ground-truth viewpoints)"),
+            Table(
+                ["Depth L1", "Relative error", "Coverage", "Frames"],
+                [
+                    [
+                        fmt_num(d["depth_l1_m"], ".3f", " m"),
+                        fmt_num(d["depth_err_pct"], "+.1f", " %"),
+                        f"{d['depth_coverage']:.0%}",
+                        str(len(ev.depth.frames)),
+                    ]
+                ],
+            ),
+        ]
     blocks.append(("h2", "Figures"))
     captions = {
         "trajectory": "Trajectory: estimate (Sim(3)-aligned) vs ground truth",
@@ -112,6 +128,7 @@ def build_blocks(ev: RunEvaluation, figures: dict[str, Path]) -> list[Block]:
         "rpy": "Roll, pitch, yaw evolution",
         "orientation_error": f"Orientation error evolution — drift @ end frame: {tr.drift_deg:.3f}°",
         "velocity": "Velocity" + (f" — score: {ev.elope_score:.4f}" if ev.elope_score is not None else ""),
+        "depth_error": "Map depth against the scene per frame (< 0: nearer the camera), and its coverage",
     }
     blocks += [Figure(captions.get(k, k), p) for k, p in figures.items()]
     blocks += [("h2", "Settings"), ("pre", _settings_text(ev))]

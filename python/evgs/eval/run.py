@@ -1,12 +1,13 @@
 """Evaluate one SLAM run directory (``config.toml`` with ``seq``, ``traj_est.txt``, ``gaussians.ply``)
-against its sequence's ground truth: trajectory metrics, image metrics, and the ELOPE score."""
+against its sequence's ground truth: trajectory metrics, image metrics, the map's depth (simulated
+sequences) and the ELOPE score."""
 
 from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 import tomllib
@@ -18,6 +19,9 @@ from evgs.eval.elope import elope_score, velocities
 from evgs.eval.images import ImageMetrics, evaluate_images
 from evgs.eval.trajectory import TrajectoryMetrics, evaluate_trajectory
 from evgs.io_util import atomic_path
+
+if TYPE_CHECKING:
+    from evgs.eval.depth import DepthMetrics  # torch and the renderer load only when depth is evaluated
 
 # Where the map is rendered from for the image metrics (see evgs.eval.render_gt).
 ImagePoses = Literal["estimate", "gt"]
@@ -33,6 +37,7 @@ class RunEvaluation:
     frames: np.ndarray  # (N,) sequence frame index of each associated pose, −1 when not a frame time
     images: ImageMetrics | None = None
     image_frames: np.ndarray | None = None  # frames the image metrics were computed on
+    depth: DepthMetrics | None = None  # the map's depth against the simulated scene's
     elope_score: float | None = None
     notes: list[str] = field(default_factory=list)  # why something was skipped, what was dropped
 
@@ -63,6 +68,9 @@ class RunEvaluation:
         img = self.images.summary() if self.images is not None else {}
         for k in ("psnr_db", "ssim", "lpips"):
             row[k] = img.get(k, float("nan"))
+        depth = self.depth.summary() if self.depth is not None else {}
+        for k in ("depth_l1_m", "depth_err_pct", "depth_coverage"):
+            row[k] = depth.get(k, float("nan"))
         row["elope_score"] = self.elope_score if self.elope_score is not None else float("nan")
         return row
 
@@ -117,10 +125,13 @@ def evaluate_run(
     with_scale: bool = True,
     rpe_delta_m: float = 1.0,
     image_poses: ImagePoses = "estimate",
+    depth: bool = True,
 ) -> RunEvaluation:
     """Evaluate a run. ``elope=None`` computes the ELOPE score only for ELOPE sequences (their ``z`` is
     the altitude); ``images`` renders ``gaussians.ply`` at the ground-truth frames when possible, from
-    the estimated poses or the ground-truth viewpoints (``image_poses``, see ``evgs.eval.render_gt``)."""
+    the estimated poses or the ground-truth viewpoints (``image_poses``, see ``evgs.eval.render_gt``);
+    ``depth`` compares the map's depth with the scene's when the sequence was simulated
+    (``evgs.eval.depth``)."""
     if image_poses not in ("estimate", "gt"):
         raise ValueError(f"image_poses must be 'estimate' or 'gt', got {image_poses!r}")
     run_dir = Path(run_dir)
@@ -150,6 +161,8 @@ def evaluate_run(
         ev.elope_score = elope_score(assoc.t, ev.traj.p_est, ev.traj.p_gt)
     if images:
         _evaluate_images(ev, image_poses)
+    if depth:
+        _evaluate_depth(ev)
     return ev
 
 
@@ -183,6 +196,26 @@ def _evaluate_images(ev: RunEvaluation, image_poses: ImagePoses) -> None:
     ev.notes.append(f"image metrics rendered from the {view}")
 
 
+def _evaluate_depth(ev: RunEvaluation) -> None:
+    """Fill ``ev.depth`` for a simulated sequence, or say in ``ev.notes`` why not (silent for the others:
+    no scene to compare with is the normal case for recorded data)."""
+    if "simulator" not in ev.sequence.meta:
+        return
+    ply = ev.run_dir / "gaussians.ply"
+    frames = ev.frames[ev.frames >= 0]
+    if not ply.is_file() or not len(frames):
+        ev.notes.append("depth metrics skipped: " + ("no gaussians.ply" if len(frames) else "no frame times"))
+        return
+    from evgs.eval.depth import evaluate_depth, simulated_scene
+
+    scene = simulated_scene(ev.sequence)
+    if scene is None:
+        target = ev.sequence.meta["simulator"].get("target")
+        ev.notes.append(f"depth metrics skipped: the simulated target {target!r} cannot be rebuilt")
+        return
+    ev.depth = evaluate_depth(ply, ev.sequence, scene, ev.traj.sim3, frames)
+
+
 def save_metrics(ev: RunEvaluation, path: Path) -> None:
     """The summary plus per-frame series as JSON (NaN → null)."""
 
@@ -205,6 +238,13 @@ def save_metrics(ev: RunEvaluation, path: Path) -> None:
             "psnr_db": [clean(float(v)) for v in ev.images.psnr],
             "ssim": ev.images.ssim.tolist(),
             "lpips": ev.images.lpips.tolist(),
+        }
+    if ev.depth is not None:
+        doc["depth"] = {
+            "frame": ev.depth.frames.tolist(),
+            "l1_m": [clean(float(v)) for v in ev.depth.l1_m],
+            "rel": [clean(float(v)) for v in ev.depth.rel],
+            "coverage": ev.depth.coverage.tolist(),
         }
     doc["notes"] = ev.notes
     with atomic_path(path) as tmp:

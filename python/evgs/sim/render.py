@@ -243,25 +243,53 @@ class Renderer:
         self.resolved = (
             ctx.framebuffer([ctx.renderbuffer(size, components=1, dtype="f4")]) if samples else self.fbo
         )
+        self.near_far = (near, far)
+        self.depth_fbo: moderngl.Framebuffer | None = None  # single-sampled, made on first depth()
 
-    def render(self, T_wc: np.ndarray) -> np.ndarray:
-        """Linear radiance (H, W) float32 seen from camera-to-world pose ``T_wc``."""
+    def _draw(self, T_wc: np.ndarray, fbo: moderngl.Framebuffer) -> None:
         T_cw = invert_pose(np.asarray(T_wc, np.float64))
         self.prog["world_to_cam"].write(_mat(T_cw))
         self.prog["cam_pos"].value = tuple(np.asarray(T_wc)[:3, 3])
-        self.fbo.use()
+        fbo.use()
         self.ctx.enable(moderngl.DEPTH_TEST)
         self.ctx.disable(moderngl.CULL_FACE)
-        self.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         self.shadow_map.use(location=0)
         self.vao.render(moderngl.TRIANGLES)
+
+    def _undistort(self, img: np.ndarray, interpolation: int, border: float) -> np.ndarray:
+        if self.remap is None:
+            return img
+        return cv2.remap(img, *self.remap, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=border)
+
+    def render(self, T_wc: np.ndarray) -> np.ndarray:
+        """Linear radiance (H, W) float32 seen from camera-to-world pose ``T_wc``."""
+        self._draw(T_wc, self.fbo)
         if self.resolved is not self.fbo:
             self.ctx.copy_framebuffer(self.resolved, self.fbo)
         data = self.resolved.read(components=1, dtype="f4")
         img = np.frombuffer(data, np.float32).reshape(self.canvas.height, self.canvas.width)
-        if self.remap is not None:
-            img = cv2.remap(img, *self.remap, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        return img
+        return self._undistort(img, cv2.INTER_LINEAR, 0.0)
+
+    def depth(self, T_wc: np.ndarray) -> np.ndarray:
+        """Camera-frame depth ``z`` (H, W) float32 of the nearest surface at each pixel centre seen from
+        ``T_wc``; inf where the ray meets nothing (the ground truth of a map's depth, evgs.eval.depth).
+
+        Single-sampled, so a silhouette pixel holds one surface's depth, not a blend of two."""
+        w, h = self.canvas.width, self.canvas.height
+        if self.depth_fbo is None:
+            self.depth_fbo = self.ctx.framebuffer(
+                [self.ctx.renderbuffer((w, h), components=1, dtype="f4")], self.ctx.depth_renderbuffer((w, h))
+            )
+        self._draw(T_wc, self.depth_fbo)
+        window = np.frombuffer(
+            self.depth_fbo.read(components=1, attachment=-1, dtype="f4"), np.float32
+        ).reshape(h, w)
+        n, f = self.near_far
+        ndc = 2.0 * window.astype(np.float64) - 1.0  # inverts the vertex shader's projection of z
+        with np.errstate(divide="ignore"):
+            z = np.where(window < 1.0, 2.0 * f * n / ((f + n) - ndc * (f - n)), np.inf)
+        return self._undistort(z.astype(np.float32), cv2.INTER_NEAREST, np.inf)
 
     def release(self) -> None:
         self.ctx.release()

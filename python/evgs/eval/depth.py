@@ -1,0 +1,116 @@
+"""Where the map's surfaces are: its depth against the simulated scene's, from the ground-truth viewpoints.
+
+PSNR says whether the map looks right from the cameras; a target's shape, and the range meter's
+first-surface scale (evgs.slam.metric_scale), depend on where its surfaces lie. A sequence evgs
+simulated names its scene in ``sequence.toml`` (``[simulator]``), so the renderer's depth pass gives the
+true depth at every ground-truth frame. The map is rendered from the same viewpoints, brought into its
+frame by the inverse of the evaluation Sim(3) (evgs.eval.render_gt), and its depths are put in metres by
+that Sim(3)'s scale. Compared at the pixels where both see a surface (the map's opacity ≥ ``MIN_ALPHA``,
+its mean depth ``D / alpha`` there), per frame:
+
+- depth L1 (metres): the mean ``|D_map − D_gt|`` (the dense-SLAM convention);
+- relative error: the median of ``D_map / D_gt − 1``, signed: below 0 the map sits nearer the camera
+  than the target, as if the meter read short;
+- coverage: the share of the target's pixels the map covers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from evgs.data.sequence import Sequence
+from evgs.eval.align import Sim3
+from evgs.eval.render_gt import gt_poses_in_map
+from evgs.geometry import invert_pose
+from evgs.render import render
+from evgs.slam.gaussians import load_ply
+
+if TYPE_CHECKING:
+    from evgs.sim.scene import Scene
+
+MIN_ALPHA = 0.5  # a pixel whose opacity is below this is the background's, not the map's
+
+
+@dataclass(frozen=True)
+class DepthMetrics:
+    frames: np.ndarray  # (F,) sequence frames
+    l1_m: np.ndarray  # (F,) mean |D_map − D_gt| over the compared pixels, metres (NaN: none compared)
+    rel: np.ndarray  # (F,) median D_map / D_gt − 1 over them
+    coverage: np.ndarray  # (F,) compared pixels / the target's pixels
+
+    def summary(self) -> dict[str, float]:
+        """Means over the frames with compared pixels; the relative error in per cent."""
+        ok = np.isfinite(self.rel)
+        if not ok.any():
+            return {"depth_l1_m": float("nan"), "depth_err_pct": float("nan"), "depth_coverage": 0.0}
+        return {
+            "depth_l1_m": float(np.mean(self.l1_m[ok])),
+            "depth_err_pct": float(np.mean(self.rel[ok]) * 100.0),
+            "depth_coverage": float(np.mean(self.coverage)),
+        }
+
+
+def compare_depth(
+    map_depth: np.ndarray, map_alpha: np.ndarray, gt_depth: np.ndarray, scale: float
+) -> tuple[float, float, float]:
+    """``(l1_m, rel, coverage)`` of one view: the map's expected depth ``map_depth`` (un-normalised, map
+    units) and opacity against the true depth ``gt_depth`` (metres, inf off the target), the map's
+    depths taken to metres by ``scale``."""
+    target = np.isfinite(gt_depth)
+    seen = target & (map_alpha >= MIN_ALPHA)
+    coverage = float(seen.sum() / target.sum()) if target.any() else 0.0
+    if not seen.any():
+        return float("nan"), float("nan"), coverage
+    d_map = scale * map_depth[seen] / map_alpha[seen]
+    d_gt = gt_depth[seen]
+    return float(np.mean(np.abs(d_map - d_gt))), float(np.median(d_map / d_gt - 1.0)), coverage
+
+
+def simulated_scene(seq: Sequence) -> Scene | None:
+    """The scene a sequence was simulated from, or None for any other sequence (or a mesh file that is
+    no longer where it was). The simulator is imported here, not at the top: trimesh and moderngl are
+    for simulated sequences only."""
+    sim = seq.meta.get("simulator")
+    if not isinstance(sim, dict) or "target" not in sim:
+        return None
+    from evgs.sim.scene import SURFACE_SEED, make_scene
+
+    try:
+        return make_scene(
+            str(sim["target"]), str(sim.get("material", "paint")), float(sim.get("mesh_scale", 1.0)),
+            int(sim.get("seed", SURFACE_SEED)),
+        )  # fmt: skip
+    except ValueError:
+        return None
+
+
+def evaluate_depth(
+    ply: str | Path, seq: Sequence, scene: Scene, sim3: Sim3, frames: np.ndarray
+) -> DepthMetrics:
+    """:class:`DepthMetrics` of the map ``ply`` at the sequence ``frames``, against ``scene`` (the
+    simulated one, :func:`simulated_scene`), the map brought to the ground truth by ``sim3``."""
+    from evgs.sim.lights import Lighting
+    from evgs.sim.render import Renderer
+
+    gt = seq.poses_gt()
+    if gt is None:
+        raise ValueError(f"{seq.root}: sequence has no poses_gt.txt")
+    T_map_c = gt_poses_in_map(seq, sim3, frames)
+    T_world_c = sim3.apply_poses(T_map_c)
+    g = load_ply(ply)
+    viewmats = torch.from_numpy(invert_pose(T_map_c).astype(np.float32))
+    rows = []
+    with Renderer(scene, seq.camera, Lighting(sun_dir=(0.0, 0.0, 1.0), sun=0.0), msaa=0) as r:
+        for i in range(len(frames)):
+            with torch.inference_mode():
+                out = render(**g.render_inputs(), viewmats=viewmats[i : i + 1], camera=seq.camera)
+            rows.append(
+                compare_depth(out.depth[0].numpy(), out.alpha[0].numpy(), r.depth(T_world_c[i]), sim3.s)
+            )
+    l1, rel, cov = np.array(rows, dtype=np.float64).reshape(-1, 3).T
+    return DepthMetrics(np.asarray(frames), l1, rel, cov)
