@@ -10,6 +10,7 @@ import trimesh
 from eval_synth import random_sim3, write_fake_run, write_ply
 from evgs.data.sequence import Camera, write_sequence
 from evgs.eval.depth import compare_depth, simulated_scene
+from evgs.eval.plots import plot_run
 from evgs.eval.run import evaluate_run, save_metrics
 from evgs.events.arrays import EventArray
 from evgs.geometry import make_pose
@@ -71,8 +72,13 @@ def test_a_map_on_the_target_reads_its_offset(tmp_path, nearer):
     assert d["depth_err_pct"] == pytest.approx(-100 * nearer, abs=0.1)
     assert d["depth_l1_m"] == pytest.approx(nearer * DISTANCE, abs=0.005)
     assert d["depth_coverage"] > 0.95  # the carpet covers the whole plate
+    assert [v.frame for v in ev.depth.views] == [0, 2, 3]  # the first, middle and last frames
+    view = ev.depth.views[0]
+    np.testing.assert_allclose(np.nanmedian(view.map_m / view.gt_m), 1.0 - nearer, atol=1e-3)
     save_metrics(ev, run / "eval" / "metrics.json")
     assert "depth" in (run / "eval" / "metrics.json").read_text()
+    figures = plot_run(ev, run / "eval")
+    assert figures["depth_error"].is_file() and figures["depth_views"].is_file()
 
 
 def test_depth_is_skipped_with_a_reason_when_the_scene_is_gone(tmp_path):

@@ -37,11 +37,21 @@ MIN_ALPHA = 0.5  # a pixel whose opacity is below this is the background's, not 
 
 
 @dataclass(frozen=True)
+class DepthView:
+    """One frame's depths for a figure (evgs.eval.plots.plot_depth_views)."""
+
+    frame: int
+    gt_m: np.ndarray  # (H, W) the scene's depth, inf off the target
+    map_m: np.ndarray  # (H, W) the map's mean depth in metres, NaN where its opacity is below MIN_ALPHA
+
+
+@dataclass(frozen=True)
 class DepthMetrics:
     frames: np.ndarray  # (F,) sequence frames
     l1_m: np.ndarray  # (F,) mean |D_map − D_gt| over the compared pixels, metres (NaN: none compared)
     rel: np.ndarray  # (F,) median D_map / D_gt − 1 over them
     coverage: np.ndarray  # (F,) compared pixels / the target's pixels
+    views: tuple[DepthView, ...] = ()  # the first, middle and last frames' depths
 
     def summary(self) -> dict[str, float]:
         """Means over the frames with compared pixels; the relative error in per cent."""
@@ -55,6 +65,12 @@ class DepthMetrics:
         }
 
 
+def map_depth_m(map_depth: np.ndarray, map_alpha: np.ndarray, scale: float) -> np.ndarray:
+    """The map's mean depth ``D / alpha`` in metres (``scale`` per map unit), NaN below ``MIN_ALPHA``."""
+    opaque = map_alpha >= MIN_ALPHA
+    return np.where(opaque, scale * map_depth / np.where(opaque, map_alpha, 1.0), np.nan)
+
+
 def compare_depth(
     map_depth: np.ndarray, map_alpha: np.ndarray, gt_depth: np.ndarray, scale: float
 ) -> tuple[float, float, float]:
@@ -62,12 +78,12 @@ def compare_depth(
     units) and opacity against the true depth ``gt_depth`` (metres, inf off the target), the map's
     depths taken to metres by ``scale``."""
     target = np.isfinite(gt_depth)
-    seen = target & (map_alpha >= MIN_ALPHA)
+    d_map = map_depth_m(map_depth, map_alpha, scale)
+    seen = target & np.isfinite(d_map)
     coverage = float(seen.sum() / target.sum()) if target.any() else 0.0
     if not seen.any():
         return float("nan"), float("nan"), coverage
-    d_map = scale * map_depth[seen] / map_alpha[seen]
-    d_gt = gt_depth[seen]
+    d_map, d_gt = d_map[seen], gt_depth[seen]
     return float(np.mean(np.abs(d_map - d_gt))), float(np.median(d_map / d_gt - 1.0)), coverage
 
 
@@ -97,20 +113,19 @@ def evaluate_depth(
     from evgs.sim.lights import Lighting
     from evgs.sim.render import Renderer
 
-    gt = seq.poses_gt()
-    if gt is None:
-        raise ValueError(f"{seq.root}: sequence has no poses_gt.txt")
     T_map_c = gt_poses_in_map(seq, sim3, frames)
     T_world_c = sim3.apply_poses(T_map_c)
     g = load_ply(ply)
     viewmats = torch.from_numpy(invert_pose(T_map_c).astype(np.float32))
-    rows = []
+    shown = {0, len(frames) // 2, len(frames) - 1}
+    rows, views = [], []
     with Renderer(scene, seq.camera, Lighting(sun_dir=(0.0, 0.0, 1.0), sun=0.0), msaa=0) as r:
         for i in range(len(frames)):
             with torch.inference_mode():
                 out = render(**g.render_inputs(), viewmats=viewmats[i : i + 1], camera=seq.camera)
-            rows.append(
-                compare_depth(out.depth[0].numpy(), out.alpha[0].numpy(), r.depth(T_world_c[i]), sim3.s)
-            )
+            depth, alpha, gt_m = out.depth[0].numpy(), out.alpha[0].numpy(), r.depth(T_world_c[i])
+            rows.append(compare_depth(depth, alpha, gt_m, sim3.s))
+            if i in shown:
+                views.append(DepthView(int(frames[i]), gt_m, map_depth_m(depth, alpha, sim3.s)))
     l1, rel, cov = np.array(rows, dtype=np.float64).reshape(-1, 3).T
-    return DepthMetrics(np.asarray(frames), l1, rel, cov)
+    return DepthMetrics(np.asarray(frames), l1, rel, cov, tuple(views))

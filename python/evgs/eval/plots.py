@@ -12,6 +12,9 @@ from matplotlib.figure import Figure
 from evgs.io_util import atomic_path
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from evgs.eval.depth import DepthView
     from evgs.eval.run import RunEvaluation
 
 _AXES = ("x", "y", "z")
@@ -141,6 +144,27 @@ def plot_depth_error(frames: np.ndarray, rel: np.ndarray, coverage: np.ndarray, 
     return _save(fig, path)
 
 
+def plot_depth_views(views: Sequence[DepthView], path: Path) -> Path:
+    """One row per frame: the scene's depth, the map's (same colour scale, metres; blank where the map's
+    opacity is below 0.5) and their relative error where both see a surface (red: the map nearer the
+    camera, blue: farther)."""
+    fig = Figure(figsize=(11, 3.2 * len(views)))
+    axs = fig.subplots(len(views), 3, squeeze=False)
+    for row, v in zip(axs, views, strict=True):
+        gt = np.where(np.isfinite(v.gt_m), v.gt_m, np.nan)
+        lo, hi = np.nanpercentile(np.concatenate([gt.ravel(), v.map_m.ravel()]), [1, 99])
+        err = 100.0 * (v.map_m / gt - 1.0)
+        for ax, img, title, kw in (
+            (row[0], gt, f"frame {v.frame}: scene depth [m]", {"cmap": "viridis", "vmin": lo, "vmax": hi}),
+            (row[1], v.map_m, "map depth [m]", {"cmap": "viridis", "vmin": lo, "vmax": hi}),
+            (row[2], err, "map / scene − 1 [%]", {"cmap": "RdBu", "vmin": -25.0, "vmax": 25.0}),
+        ):
+            fig.colorbar(ax.imshow(img, **kw), ax=ax, fraction=0.035)
+            ax.set_title(title)
+            ax.set_axis_off()
+    return _save(fig, path)
+
+
 def plot_run(ev: RunEvaluation, out_dir: Path) -> dict[str, Path]:
     """All figures of a :class:`evgs.eval.run.RunEvaluation` into ``out_dir``; returns name → path."""
     tr = ev.traj
@@ -158,4 +182,6 @@ def plot_run(ev: RunEvaluation, out_dir: Path) -> dict[str, Path]:
     if ev.depth is not None:
         d = ev.depth
         figures["depth_error"] = plot_depth_error(d.frames, d.rel, d.coverage, out_dir / "depth_error.png")
+        if d.views:
+            figures["depth_views"] = plot_depth_views(d.views, out_dir / "depth_views.png")
     return figures

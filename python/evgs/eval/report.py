@@ -129,6 +129,7 @@ def build_blocks(ev: RunEvaluation, figures: dict[str, Path]) -> list[Block]:
         "orientation_error": f"Orientation error evolution — drift @ end frame: {tr.drift_deg:.3f}°",
         "velocity": "Velocity" + (f" — score: {ev.elope_score:.4f}" if ev.elope_score is not None else ""),
         "depth_error": "Map depth against the scene per frame (< 0: nearer the camera), and its coverage",
+        "depth_views": "Scene depth, map depth and their relative error at the first, middle and last frames",
     }
     blocks += [Figure(captions.get(k, k), p) for k, p in figures.items()]
     blocks += [("h2", "Settings"), ("pre", _settings_text(ev))]
