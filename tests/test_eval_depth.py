@@ -23,14 +23,15 @@ def test_compare_depth_on_known_arrays():
     gt = np.array([[2.0, 4.0], [np.inf, 5.0]])
     alpha = np.array([[1.0, 0.5], [1.0, 0.2]])  # the last pixel is not the map's
     depth = np.array([[1.0, 2.2], [3.0, 9.9]]) * alpha  # un-normalised: D = mean depth × alpha
-    l1, rel, coverage = compare_depth(depth, alpha, gt, scale=2.0)  # map depths in metres: 2.0, 4.4
+    l1, rel, coverage, spill = compare_depth(depth, alpha, gt, scale=2.0)  # map depths in metres: 2.0, 4.4
     assert l1 == pytest.approx((0.0 + 0.4) / 2)
     assert rel == pytest.approx(np.median([0.0, 0.1]))
     assert coverage == pytest.approx(2 / 3)  # 2 of the target's 3 pixels (the inf one is background)
+    assert spill == pytest.approx(1 / 3)  # the opaque background pixel, per target pixel
     assert np.isnan(compare_depth(depth, alpha * 0, gt, 1.0)[1])  # nothing compared
 
 
-def _flat_target_run(tmp_path, rng, nearer: float):
+def _flat_target_run(tmp_path, rng, nearer: float, half: float = 1.4):
     """A simulated-looking sequence of a 3 m square plate (a mesh file) seen from ``DISTANCE`` above,
     and a run whose map is a carpet of flat Gaussians on the plate's face lifted ``nearer`` × DISTANCE
     towards the cameras, map and trajectory both expressed through a random Sim(3)."""
@@ -53,7 +54,7 @@ def _flat_target_run(tmp_path, rng, nearer: float):
     sim3 = random_sim3(rng)  # estimate → ground truth
     inv = sim3.inverse()
     run = write_fake_run(tmp_path, seq, inv.apply_poses(T_gt))
-    g = np.arange(-1.5, 1.5001, 0.025)
+    g = np.arange(-half, half + 1e-6, 0.025)
     xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
     means = np.column_stack([xy, np.full(len(xy), 0.01 + nearer * DISTANCE)])
     log_scales = np.log(np.tile([0.02, 0.02, 0.001], (len(means), 1))) + np.log(inv.s)
@@ -72,6 +73,10 @@ def test_a_map_on_the_target_reads_its_offset(tmp_path, nearer):
     assert d["depth_err_pct"] == pytest.approx(-100 * nearer, abs=0.1)
     assert d["depth_l1_m"] == pytest.approx(nearer * DISTANCE, abs=0.005)
     assert d["depth_coverage"] > 0.95  # the carpet covers the whole plate
+    if nearer == 0:  # (lifted, the carpet looks larger than the plate)
+        # and little beyond it: a pixel's rim on two sides of 30, as the rasterizer evaluates pixel i at
+        # i + 0.5 and the simulator's renderer at i (OpenCV), half a pixel apart
+        assert d["depth_spill"] < 0.1
     assert [v.frame for v in ev.depth.views] == [0, 2, 3]  # the first, middle and last frames
     view = ev.depth.views[0]
     np.testing.assert_allclose(np.nanmedian(view.map_m / view.gt_m), 1.0 - nearer, atol=1e-3)

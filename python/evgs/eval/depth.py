@@ -11,7 +11,9 @@ its mean depth ``D / alpha`` there), per frame:
 - depth L1 (metres): the mean ``|D_map − D_gt|`` (the dense-SLAM convention);
 - relative error: the median of ``D_map / D_gt − 1``, signed: below 0 the map sits nearer the camera
   than the target, as if the meter read short;
-- coverage: the share of the target's pixels the map covers.
+- coverage: the share of the target's pixels the map covers;
+- spill: the map's opaque pixels off the target, per target pixel. On a black background dark Gaussians
+  beside the target cost no PSNR, but they are surfaces all the same (a range meter would meet them).
 """
 
 from __future__ import annotations
@@ -51,17 +53,20 @@ class DepthMetrics:
     l1_m: np.ndarray  # (F,) mean |D_map − D_gt| over the compared pixels, metres (NaN: none compared)
     rel: np.ndarray  # (F,) median D_map / D_gt − 1 over them
     coverage: np.ndarray  # (F,) compared pixels / the target's pixels
+    spill: np.ndarray  # (F,) the map's opaque pixels off the target / the target's pixels
     views: tuple[DepthView, ...] = ()  # the first, middle and last frames' depths
 
     def summary(self) -> dict[str, float]:
         """Means over the frames with compared pixels; the relative error in per cent."""
         ok = np.isfinite(self.rel)
         if not ok.any():
-            return {"depth_l1_m": float("nan"), "depth_err_pct": float("nan"), "depth_coverage": 0.0}
+            nan = float("nan")
+            return {"depth_l1_m": nan, "depth_err_pct": nan, "depth_coverage": 0.0, "depth_spill": nan}
         return {
             "depth_l1_m": float(np.mean(self.l1_m[ok])),
             "depth_err_pct": float(np.mean(self.rel[ok]) * 100.0),
             "depth_coverage": float(np.mean(self.coverage)),
+            "depth_spill": float(np.mean(self.spill)),
         }
 
 
@@ -73,18 +78,19 @@ def map_depth_m(map_depth: np.ndarray, map_alpha: np.ndarray, scale: float) -> n
 
 def compare_depth(
     map_depth: np.ndarray, map_alpha: np.ndarray, gt_depth: np.ndarray, scale: float
-) -> tuple[float, float, float]:
-    """``(l1_m, rel, coverage)`` of one view: the map's expected depth ``map_depth`` (un-normalised, map
-    units) and opacity against the true depth ``gt_depth`` (metres, inf off the target), the map's
-    depths taken to metres by ``scale``."""
+) -> tuple[float, float, float, float]:
+    """``(l1_m, rel, coverage, spill)`` of one view: the map's expected depth ``map_depth``
+    (un-normalised, map units) and opacity against the true depth ``gt_depth`` (metres, inf off the
+    target), the map's depths taken to metres by ``scale``."""
     target = np.isfinite(gt_depth)
     d_map = map_depth_m(map_depth, map_alpha, scale)
     seen = target & np.isfinite(d_map)
     coverage = float(seen.sum() / target.sum()) if target.any() else 0.0
+    spill = float((np.isfinite(d_map) & ~target).sum() / target.sum()) if target.any() else float("nan")
     if not seen.any():
-        return float("nan"), float("nan"), coverage
+        return float("nan"), float("nan"), coverage, spill
     d_map, d_gt = d_map[seen], gt_depth[seen]
-    return float(np.mean(np.abs(d_map - d_gt))), float(np.median(d_map / d_gt - 1.0)), coverage
+    return float(np.mean(np.abs(d_map - d_gt))), float(np.median(d_map / d_gt - 1.0)), coverage, spill
 
 
 def simulated_scene(seq: Sequence) -> Scene | None:
@@ -127,5 +133,5 @@ def evaluate_depth(
             rows.append(compare_depth(depth, alpha, gt_m, sim3.s))
             if i in shown:
                 views.append(DepthView(int(frames[i]), gt_m, map_depth_m(depth, alpha, sim3.s)))
-    l1, rel, cov = np.array(rows, dtype=np.float64).reshape(-1, 3).T
-    return DepthMetrics(np.asarray(frames), l1, rel, cov, tuple(views))
+    l1, rel, cov, spill = np.array(rows, dtype=np.float64).reshape(-1, 4).T
+    return DepthMetrics(np.asarray(frames), l1, rel, cov, spill, tuple(views))

@@ -110,12 +110,13 @@ def build_blocks(ev: RunEvaluation, figures: dict[str, Path]) -> list[Block]:
         blocks += [
             ("h2", "Map depth against the simulated scene (ground-truth viewpoints)"),
             Table(
-                ["Depth L1", "Relative error", "Coverage", "Frames"],
+                ["Depth L1", "Relative error", "Coverage", "Spill", "Frames"],
                 [
                     [
                         fmt_num(d["depth_l1_m"], ".3f", " m"),
                         fmt_num(d["depth_err_pct"], "+.1f", " %"),
                         f"{d['depth_coverage']:.0%}",
+                        fmt_num(d["depth_spill"], ".0%"),
                         str(len(ev.depth.frames)),
                     ]
                 ],

@@ -69,7 +69,7 @@ class RunEvaluation:
         for k in ("psnr_db", "ssim", "lpips"):
             row[k] = img.get(k, float("nan"))
         depth = self.depth.summary() if self.depth is not None else {}
-        for k in ("depth_l1_m", "depth_err_pct", "depth_coverage"):
+        for k in ("depth_l1_m", "depth_err_pct", "depth_coverage", "depth_spill"):
             row[k] = depth.get(k, float("nan"))
         row["elope_score"] = self.elope_score if self.elope_score is not None else float("nan")
         return row
@@ -245,6 +245,7 @@ def save_metrics(ev: RunEvaluation, path: Path) -> None:
             "l1_m": [clean(float(v)) for v in ev.depth.l1_m],
             "rel": [clean(float(v)) for v in ev.depth.rel],
             "coverage": ev.depth.coverage.tolist(),
+            "spill": [clean(float(v)) for v in ev.depth.spill],
         }
     doc["notes"] = ev.notes
     with atomic_path(path) as tmp:
