@@ -9,7 +9,7 @@ import tomllib
 import trimesh
 from eval_synth import random_sim3, write_fake_run, write_ply
 from evgs.data.sequence import Camera, write_sequence
-from evgs.eval.depth import compare_depth, simulated_scene
+from evgs.eval.depth import DepthMetrics, compare_depth, simulated_scene
 from evgs.eval.plots import plot_run
 from evgs.eval.run import evaluate_run, save_metrics
 from evgs.events.arrays import EventArray
@@ -103,3 +103,15 @@ def test_recorded_sequences_have_no_scene(tmp_path):
     toml.write_text(tomli_w.dumps(meta))
     assert simulated_scene(evaluate_run(run, images=False, depth=False).sequence) is None
     assert evaluate_run(run, images=False).depth is None
+
+
+def test_a_map_off_the_target_still_reports_its_coverage_and_spill():
+    frames = np.arange(3)
+    metrics = DepthMetrics(
+        frames, np.full(3, np.nan), np.full(3, np.nan), np.zeros(3), np.array([0.5, 1.5, np.nan])
+    )
+    s = metrics.summary()
+    assert np.isnan(s["depth_err_pct"]) and np.isnan(s["depth_l1_m"])
+    assert s["depth_coverage"] == 0.0 and s["depth_spill"] == pytest.approx(
+        1.0
+    )  # the frame without target skipped

@@ -57,16 +57,18 @@ class DepthMetrics:
     views: tuple[DepthView, ...] = ()  # the first, middle and last frames' depths
 
     def summary(self) -> dict[str, float]:
-        """Means over the frames with compared pixels; the relative error in per cent."""
-        ok = np.isfinite(self.rel)
-        if not ok.any():
-            nan = float("nan")
-            return {"depth_l1_m": nan, "depth_err_pct": nan, "depth_coverage": 0.0, "depth_spill": nan}
+        """The errors' means over the frames with compared pixels (the relative error in per cent; NaN
+        where the map covers the target in none), coverage and spill over every frame that sees it."""
+
+        def mean(x: np.ndarray, scale: float = 1.0) -> float:
+            ok = np.isfinite(x)
+            return float(np.mean(x[ok]) * scale) if ok.any() else float("nan")
+
         return {
-            "depth_l1_m": float(np.mean(self.l1_m[ok])),
-            "depth_err_pct": float(np.mean(self.rel[ok]) * 100.0),
-            "depth_coverage": float(np.mean(self.coverage)),
-            "depth_spill": float(np.mean(self.spill)),
+            "depth_l1_m": mean(self.l1_m),
+            "depth_err_pct": mean(self.rel, 100.0),
+            "depth_coverage": mean(self.coverage),
+            "depth_spill": mean(self.spill),
         }
 
 
