@@ -87,13 +87,13 @@ class RunDir:
 
 
 def trajectory_error(root: Path) -> dict:
-    """ATE RMSE after Sim(3) alignment, rotation drift and friends from ``evgs.eval`` (no image
+    """ATE RMSE after Sim(3) alignment, rotation drift and friends from ``evgs.eval`` (no image or depth
     metrics: those belong to ``evgs eval``); empty without ground truth."""
     cfg = read_run_config(root)
     if resolve_sequence(root, cfg).poses_gt() is None:
         return {}
     try:
-        ev = evaluate_run(root, images=False)
+        ev = evaluate_run(root, images=False, depth=False)
     except ValueError as e:  # e.g. fewer than 3 poses overlap the ground truth
         return {"trajectory_error": f"not computed: {e}"}
     keys = ("ate_rmse", "drift_deg", "rot_err_rmse_deg", "scale", "rpe_trans_rmse", "rpe_rot_rmse_deg")
