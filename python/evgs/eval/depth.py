@@ -27,7 +27,7 @@ import torch
 
 from evgs.data.sequence import Sequence
 from evgs.eval.align import Sim3
-from evgs.eval.render_gt import gt_poses_in_map
+from evgs.eval.render_gt import gt_poses_at
 from evgs.geometry import invert_pose
 from evgs.render import render
 from evgs.slam.gaussians import load_ply
@@ -121,8 +121,8 @@ def evaluate_depth(
     from evgs.sim.lights import Lighting
     from evgs.sim.render import Renderer
 
-    T_map_c = gt_poses_in_map(seq, sim3, frames)
-    T_world_c = sim3.apply_poses(T_map_c)
+    T_world_c = gt_poses_at(seq, frames)
+    T_map_c = sim3.inverse().apply_poses(T_world_c)
     g = load_ply(ply)
     viewmats = torch.from_numpy(invert_pose(T_map_c).astype(np.float32))
     shown = {0, len(frames) // 2, len(frames) - 1}

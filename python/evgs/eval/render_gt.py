@@ -24,14 +24,18 @@ from evgs.render import render
 from evgs.slam.gaussians import load_ply
 
 
-def gt_poses_in_map(seq: Sequence, sim3: Sim3, frames: np.ndarray) -> np.ndarray:
-    """(F, 4, 4) camera-to-map poses of the ground truth at the given sequence frames."""
+def gt_poses_at(seq: Sequence, frames: np.ndarray) -> np.ndarray:
+    """(F, 4, 4) camera-to-world ground-truth poses at the given sequence frames (interpolated)."""
     gt = seq.poses_gt()
     if gt is None:
         raise ValueError(f"{seq.root}: sequence has no poses_gt.txt")
     t_us = seq.frames_us()[frames]
-    T_gt = interpolate_poses(gt[0].astype(np.float64), gt[1], t_us.astype(np.float64))
-    return sim3.inverse().apply_poses(T_gt)
+    return interpolate_poses(gt[0].astype(np.float64), gt[1], t_us.astype(np.float64))
+
+
+def gt_poses_in_map(seq: Sequence, sim3: Sim3, frames: np.ndarray) -> np.ndarray:
+    """(F, 4, 4) camera-to-map poses of the ground truth at the given sequence frames."""
+    return sim3.inverse().apply_poses(gt_poses_at(seq, frames))
 
 
 def render_at_gt_frames(

@@ -203,8 +203,11 @@ def _evaluate_depth(ev: RunEvaluation) -> None:
         return
     ply = ev.run_dir / "gaussians.ply"
     frames = ev.frames[ev.frames >= 0]
-    if not ply.is_file() or not len(frames):
-        ev.notes.append("depth metrics skipped: " + ("no gaussians.ply" if len(frames) else "no frame times"))
+    if not len(frames):
+        ev.notes.append("depth metrics skipped: no estimated pose at a frame time")
+        return
+    if not ply.is_file():
+        ev.notes.append("depth metrics skipped: the run has no gaussians.ply")
         return
     from evgs.eval.depth import evaluate_depth, simulated_scene
 
