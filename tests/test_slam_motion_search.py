@@ -158,6 +158,30 @@ def test_a_winning_translation_is_veered_towards_a_sideways_part(synth, monkeypa
         synth_state(synth, *sets, "init.search_veer=90")
 
 
+def test_a_family_left_out_is_never_scored_and_the_winner_stays(synth, monkeypatch):
+    """``init.search_families``: the descent's motion (forward and 12° sideways) is found by the
+    translations alone exactly as by the whole basis, without one orbit refitted; orbits alone try no
+    translation. An unknown family is refused."""
+    ang = np.radians(12.0)
+    truth = RATE * DEPTH * torch.tensor([0.0, -np.sin(ang), np.cos(ang), 0, 0, 0], dtype=torch.float64)
+
+    def fake_score(state, hyp, reporter):
+        return float(((hyp.twist - truth) / (RATE * DEPTH)).square().sum())
+
+    monkeypatch.setattr(motion_search, "score", fake_score)
+    sets = [f"gaussians.init_depth={DEPTH}", f"init.search_rate={RATE}", "init.search_polls=0"]
+    every = search_motion(synth_state(synth, *sets, "init.search_veer=20"))
+    moved = search_motion(synth_state(synth, *sets, "init.search_veer=20", "init.search_families=translate"))
+    assert moved.best.name == every.best.name and torch.equal(moved.best.twist, every.best.twist)
+    assert not any(name.startswith("orbit") for name, _ in moved.tried)
+    assert len(moved.tried) == len(every.tried) - 4 - 4  # the basis orbits and the orbit ladder
+    turned = search_motion(synth_state(synth, *sets, "init.search_families=orbit"))
+    assert {name.split()[0] for name, _ in turned.tried} == {"still", "orbit"}
+    assert len(turned.tried) == 1 + 4 + 4
+    with pytest.raises(ValueError, match="must be one of"):
+        synth_state(synth, *sets, "init.search_families=roll")
+
+
 def test_a_winning_orbit_is_veered_towards_an_approach(synth, monkeypatch):
     """A swirl's start: an orbit about +y whose camera also closes in, its translation 25° towards the
     optical axis. The basis orbit wins; veered, its translation comes within 6° of the true direction at

@@ -65,6 +65,7 @@ class InitConfig:
     search_half_rate: bool
     search_sized: int
     search_starts: int
+    search_families: Literal["all", "orbit", "translate"]
     search_tilt: float
     search_veer: float
     search_smooth: bool

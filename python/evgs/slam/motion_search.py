@@ -18,17 +18,19 @@ The hypotheses are the motions of proximity operations with the target ahead of 
 ``init.search_rate`` per frame: orbits of the point ``(0, 0, init_depth)`` about the camera's x and y
 axes (``init.search_tilt``: also about those axes tilted towards the optical axis, as an orbit seen from
 an elevation is), approach / retreat along the optical axis, sideways translations, each in both
-directions, and no motion (``init.search_half_rate``: each also at half that rate). The best orbits
-and the best translations (``init.search_sized`` of each) are sized over × ``search_range``^(±½, ±1):
-each family's best at its own size, so that an approach slower than the nominal rate is not left
-behind orbits (docking_good). With ``init.search_veer``, the best two sizes of the winning family's
-best (an orbit or a translation) have their translation veered ± that angle towards each axis across
-it, and the best of all then ± half the angle: the basis moves along one axis, while a descent moves
-forward and sideways at once, and a swirl orbits and approaches at once (docs/ablations.md §15, §17,
-§21). With ``init.search_meter_advance`` every hypothesis instead advances along the optical axis as
-fast as the range meter closes over the searched chunks (:func:`evgs.slam.range_prior.meter_advance`):
-the events see that advance least of all, the meter directly, and the basis orbits have none
-(docs/ablations.md §41). The joint initialization starts from the winner.
+directions, and no motion (``init.search_half_rate``: each also at half that rate;
+``init.search_families``: the orbits or the translations alone, where the scenario rules the other out).
+The best orbits and the best translations (``init.search_sized`` of each) are sized over ×
+``search_range``^(±½, ±1): each family's best at its own size, so that an approach slower than the
+nominal rate is not left behind orbits (docking_good). With ``init.search_veer``, the best two sizes of
+the winning family's best (an orbit or a translation) have their translation veered ± that angle towards
+each axis across it, and the best of all then ± half the angle: the basis moves along one axis, while a
+descent moves forward and sideways at once, and a swirl orbits and approaches at once (docs/ablations.md
+§15, §17, §21). With ``init.search_meter_advance`` every hypothesis instead advances along the optical
+axis as fast as the range meter closes over the searched chunks
+(:func:`evgs.slam.range_prior.meter_advance`): the events see that advance least of all, the meter
+directly, and the basis orbits have none (docs/ablations.md §41). The joint initialization starts from
+the winner.
 
 With ``init.search_polls`` > 0 a compass search in the same basis plus roll then adds what the family
 leaves out (roll, mixtures, an orbit centre off ``init_depth``), from the best sized direction or, with
@@ -286,6 +288,7 @@ def search_motion(state: SlamState, reporter: StageReporter | None = None) -> Se
     # true rate the true direction can lose to wrong ones (docking_good's approach to every orbit, while
     # at its own rate it beats them all).
     still, *moves = directions(cfg.search_rate, depth, cfg.search_tilt)
+    moves = [h for h in moves if cfg.search_families in ("all", h.family)]
     trial(still)
     sized = [min((h, h.scaled(0.5)), key=trial) if cfg.search_half_rate else h for h in moves]
     starts, rungs = [], {}
