@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 import torch
 from evgs.data.sequence import Camera
-from evgs.render import _flat, render
+from evgs.render import _flat, raster_camera, render
 from raster_reference import render_reference
 
 CAM = Camera(width=40, height=28, fx=36.0, fy=34.0, cx=19.3, cy=14.1)
+REF_CAM = raster_camera(CAM)  # the reference keeps the kernels' grid (pixel centres at i + 0.5)
 
 
 def look_at_viewmat(yaw: float, pitch: float, shift: tuple[float, float, float]) -> torch.Tensor:
@@ -53,13 +54,32 @@ def as64(d: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
 def test_forward_matches_reference(channels: int) -> None:
     g, vm = scene(40, channels), views(2)
     out = render(**g, viewmats=vm, camera=CAM, background=0.25)
-    ref = render_reference(**as64(g), viewmats=vm.double(), camera=CAM, background=0.25)
+    ref = render_reference(**as64(g), viewmats=vm.double(), camera=REF_CAM, background=0.25)
     assert out.color.shape == (2, CAM.height, CAM.width, channels) and out.color.dtype == torch.float32
     assert out.alpha.max() > 0.5  # the scene covers the image
     torch.testing.assert_close(out.color.double(), ref[0].detach(), rtol=0, atol=1e-5)
     torch.testing.assert_close(out.alpha.double(), ref[2].detach(), rtol=0, atol=1e-5)
     torch.testing.assert_close(out.depth.double(), ref[1].detach(), rtol=0, atol=4e-5)
     assert torch.equal(out.radii, ref[3])
+
+
+def test_pixel_centres_follow_the_opencv_camera() -> None:
+    """``Camera`` intrinsics are OpenCV's (pixel i's centre at u = i, as calibrations, the simulator and
+    the events): a small round Gaussian projected to ``(12, 9)`` renders centred on pixel (12, 9), one
+    projected to ``(12.5, 9)`` evenly across pixels 12 and 13."""
+    z = 3.0
+    for u, v in ((12.0, 9.0), (12.5, 9.0)):
+        mean = torch.tensor([[(u - CAM.cx) * z / CAM.fx, (v - CAM.cy) * z / CAM.fy, z]])
+        g = {"means": mean, "log_scales": torch.full((1, 3), -4.0), "quats": torch.tensor([[1.0, 0, 0, 0]]),
+             "opacities": torch.tensor([0.9]), "colors": torch.ones(1, 1)}  # fmt: skip
+        a = render(**g, viewmats=torch.eye(4)[None], camera=CAM).alpha[0].double()
+        row = a[9]
+        if u == 12.0:
+            assert int(a.argmax()) == 9 * CAM.width + 12
+            assert float(row[11]) == pytest.approx(float(row[13]), rel=1e-4)
+            assert float(a[8, 12]) == pytest.approx(float(a[10, 12]), rel=1e-4)
+        else:
+            assert float(row[12]) == pytest.approx(float(row[13]), rel=1e-4) and float(row[12]) > 0.3
 
 
 def loss_weights(b: int, channels: int, seed: int = 1) -> tuple[torch.Tensor, ...]:
@@ -89,7 +109,7 @@ def test_gradients_match_reference_autograd(channels: int) -> None:
     ref_params = as64(g)
     vm64 = vm.double().requires_grad_()
     screen: list = []
-    ref = render_reference(**ref_params, viewmats=vm64, camera=CAM, background=0.1, screen=screen)
+    ref = render_reference(**ref_params, viewmats=vm64, camera=REF_CAM, background=0.1, screen=screen)
     weighted_loss(ref[0], ref[1], ref[2], [x.double() for x in w]).backward()
 
     for name in g:
@@ -132,7 +152,7 @@ def test_pose_gradient_matches_se3_finite_differences() -> None:
 
     def loss_at(xi: np.ndarray) -> float:
         pose = (se3_exp(xi) @ vm[0].double())[None]
-        return weighted_loss(*render_reference(**g64, viewmats=pose, camera=CAM)[:3], w64).item()
+        return weighted_loss(*render_reference(**g64, viewmats=pose, camera=REF_CAM)[:3], w64).item()
 
     eps = 1e-6
     fd = torch.tensor(
@@ -204,7 +224,7 @@ def test_edge_cases_match_reference_without_nan() -> None:
         and radii[6] > 0
         and radii[7] > 0
     )
-    ref = render_reference(**as64(g), viewmats=vm.double(), camera=CAM)
+    ref = render_reference(**as64(g), viewmats=vm.double(), camera=REF_CAM)
     assert torch.equal(radii, ref[3][0])
     torch.testing.assert_close(out.color.double(), ref[0].detach(), rtol=0, atol=1e-5)
     torch.testing.assert_close(out.alpha.double(), ref[2].detach(), rtol=0, atol=1e-5)

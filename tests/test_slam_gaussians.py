@@ -58,8 +58,9 @@ def test_on_rays_seeds_only_weighted_pixels_at_depths_in_range():
     p = g["means"].detach().double()
     z = p[:, 2]
     assert bool(((z >= 2.0) & (z <= 5.0)).all())
-    u = (p[:, 0] / z * camera.fx + camera.cx).floor().long()
-    v = (p[:, 1] / z * camera.fy + camera.cy).floor().long()
+    # OpenCV pixel centres (the camera's): pixel i spans [i - 0.5, i + 0.5).
+    u = (p[:, 0] / z * camera.fx + camera.cx + 0.5).floor().long()
+    v = (p[:, 1] / z * camera.fy + camera.cy + 0.5).floor().long()
     assert bool((weights[v, u] > 0).all())  # every Gaussian lies on a ray of a pixel with events
     heavy = float(((u == 33) & (v == 25)).double().mean())
     assert heavy == pytest.approx(20 / 36, abs=0.05)  # drawn in proportion to the weights

@@ -2,14 +2,17 @@
 
 Conventions (``/work/shared/design/RASTER_MATH.md``, gsplat semantics): ``viewmats`` are world-to-camera
 4×4 matrices with OpenCV axes; quaternions ``(w, x, y, z)``, normalised inside; opacities already
-activated; pixel ``(i, j)`` is sampled at its centre ``(i + 0.5, j + 0.5)``. Inputs are used zero-copy
+activated. ``Camera`` intrinsics follow OpenCV, as every calibration, the simulator and the event
+undistortion do: pixel ``(i, j)``'s centre is at ``(i, j)``. The Rust kernels keep gsplat's grid (pixel
+``(i, j)`` sampled at ``(i + 0.5, j + 0.5)``), so :func:`raster_camera` moves the principal point by half a
+pixel on the way in; without it every render sits half a pixel off the events. Inputs are used zero-copy
 when they are contiguous float32 CPU tensors; the GIL is released during forward and backward, and the
 forward state (tile lists, final transmittance) is kept in Rust for the backward pass.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -18,7 +21,7 @@ from torch import Tensor
 from evgs import _core
 from evgs.data.sequence import Camera
 
-__all__ = ["RenderResult", "render"]
+__all__ = ["RenderResult", "raster_camera", "render"]
 
 
 class _Sink:
@@ -52,6 +55,12 @@ class RenderResult:
         return self._sink.grad2d
 
 
+def raster_camera(camera: Camera) -> Camera:
+    """``camera`` (OpenCV: pixel centres at integers) in the rasterizer's convention (pixel centres at
+    half-integers): the same rays through the same pixels."""
+    return replace(camera, cx=camera.cx + 0.5, cy=camera.cy + 0.5)
+
+
 def _flat(t: Tensor) -> np.ndarray:
     """A flat float32 numpy view of ``t`` (a copy only if ``t`` is not contiguous float32 on the CPU)."""
     return t.detach().to(device="cpu", dtype=torch.float32).contiguous().view(-1).numpy()
@@ -63,8 +72,9 @@ class _Rasterize(torch.autograd.Function):
         inputs = [means, log_scales, quats, opacities, colors, viewmats]
         flat = [_flat(t) for t in inputs]
         flat.insert(5, colors.shape[1])
+        cam = raster_camera(camera)
         color, depth, alpha, radii, state = _core.rasterize_forward(
-            *flat, camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy, near, far, bg
+            *flat, cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, near, far, bg
         )
         b, n, c = viewmats.shape[0], opacities.shape[0], colors.shape[1]
         h, w = camera.height, camera.width

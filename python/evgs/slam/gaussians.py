@@ -122,8 +122,8 @@ class Gaussians:
             raise ValueError("gaussians: no pixel with events to seed the initial Gaussians from")
         pix = torch.multinomial(flat, num, replacement=True, generator=generator)
         jitter = torch.rand(num, 2, generator=generator, dtype=torch.float64)
-        u = (pix % camera.width).double() + jitter[:, 0]
-        v = (pix // camera.width).double() + jitter[:, 1]
+        u = (pix % camera.width).double() + jitter[:, 0] - 0.5  # anywhere in the pixel (OpenCV centres)
+        v = (pix // camera.width).double() + jitter[:, 1] - 0.5
         depth = lo + (hi - lo) * torch.rand(num, generator=generator, dtype=torch.float64)
         rays = camera_rays(u, v, camera)
         if tilt_deg:

@@ -63,7 +63,8 @@ def near_camera_mask(means: Tensor, T_wc: Tensor, camera: Camera, margin: float)
     zs = torch.where(z > 0, z, torch.ones_like(z))
     u = camera.fx * p[..., 0] / zs + camera.cx
     v = camera.fy * p[..., 1] / zs + camera.cy
-    inside = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    # The image spans [-0.5, size - 0.5) with OpenCV's pixel centres at integers.
+    inside = (u >= -0.5) & (u < camera.width - 0.5) & (v >= -0.5) & (v < camera.height - 0.5)
     return ((z > 0) & (z < margin) & inside).any(0)
 
 

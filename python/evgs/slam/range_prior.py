@@ -60,7 +60,7 @@ JUMP = 0.02  # a pair's range change this far (× range) from the median around 
 
 def principal_camera(camera: Camera) -> Camera:
     """A 1×1 camera whose only pixel centre lies on ``camera``'s principal ray (distortion-free there)."""
-    return replace(camera, width=1, height=1, cx=0.5, cy=0.5, distortion=())
+    return replace(camera, width=1, height=1, cx=0.0, cy=0.0, distortion=())
 
 
 def principal_depth(

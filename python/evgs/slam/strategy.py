@@ -214,8 +214,8 @@ def gaussians_from_view(
     rows, cols = torch.nonzero(candidates, as_tuple=True)
     n = min(max_new, len(rows))
     pick = torch.randperm(len(rows), generator=generator)[:n]
-    u = cols[pick].double() + 0.5  # pixel centres, as the rasterizer evaluates them
-    v = rows[pick].double() + 0.5
+    u = cols[pick].double()  # pixel centres (OpenCV, as the camera)
+    v = rows[pick].double()
     rays = camera_rays(u, v, camera)
     T = torch.as_tensor(T_wc, dtype=torch.float64)
     means = (rays * depth) @ T[:3, :3].T + T[:3, 3]

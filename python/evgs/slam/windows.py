@@ -38,7 +38,9 @@ class Windows:
 
 
 def scaled_camera(camera: Camera, factor: int) -> Camera:
-    """The pinhole camera of a ``factor``-times downsampled image (``ceil`` size, as accumulation)."""
+    """The pinhole camera of a ``factor``-times downsampled image (``ceil`` size, as accumulation): coarse
+    pixel ``j`` gathers fine pixels ``j·factor … j·factor + factor − 1``, so its centre (OpenCV, as
+    ``camera``) is at fine ``j·factor + (factor − 1) / 2``."""
     if factor == 1:
         return camera
     return replace(
@@ -47,8 +49,8 @@ def scaled_camera(camera: Camera, factor: int) -> Camera:
         height=math.ceil(camera.height / factor),
         fx=camera.fx / factor,
         fy=camera.fy / factor,
-        cx=camera.cx / factor,
-        cy=camera.cy / factor,
+        cx=(camera.cx + 0.5) / factor - 0.5,
+        cy=(camera.cy + 0.5) / factor - 0.5,
     )
 
 
