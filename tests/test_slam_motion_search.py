@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from torch import Tensor
 
 pytest.importorskip("evgs.render")
 
@@ -136,10 +137,9 @@ def test_veered_translations_keep_speed_and_rotation_and_turn_by_the_angle():
     assert abs(float(across[0] @ across[2])) < 1e-12
 
 
-def test_a_winning_translation_is_veered_towards_a_sideways_part(synth, monkeypatch):
-    """``init.search_veer``: a descent's motion, forward and 12° sideways along -y, is won by the basis
-    approach; veered by 20° and then by 10° back, it comes to within 2° of the true direction. Off,
-    the approach stays as it is."""
+def score_by_distance_to_a_descent(monkeypatch) -> tuple[Tensor, list[str]]:
+    """A descent's motion, forward and 12° sideways along -y, as the search's truth: every hypothesis
+    scores its squared distance to it (no refits). Returns the truth and the search's settings."""
     ang = np.radians(12.0)
     truth = RATE * DEPTH * torch.tensor([0.0, -np.sin(ang), np.cos(ang), 0, 0, 0], dtype=torch.float64)
 
@@ -147,7 +147,14 @@ def test_a_winning_translation_is_veered_towards_a_sideways_part(synth, monkeypa
         return float(((hyp.twist - truth) / (RATE * DEPTH)).square().sum())
 
     monkeypatch.setattr(motion_search, "score", fake_score)
-    sets = [f"gaussians.init_depth={DEPTH}", f"init.search_rate={RATE}", "init.search_polls=0"]
+    return truth, [f"gaussians.init_depth={DEPTH}", f"init.search_rate={RATE}", "init.search_polls=0"]
+
+
+def test_a_winning_translation_is_veered_towards_a_sideways_part(synth, monkeypatch):
+    """``init.search_veer``: a descent's motion, forward and 12° sideways along -y, is won by the basis
+    approach; veered by 20° and then by 10° back, it comes to within 2° of the true direction. Off,
+    the approach stays as it is."""
+    truth, sets = score_by_distance_to_a_descent(monkeypatch)
     plain = search_motion(synth_state(synth, *sets))
     assert plain.best.name == "translate +z" and len(plain.tried) == 11 + 8
     found = search_motion(synth_state(synth, *sets, "init.search_veer=20"))
@@ -162,14 +169,7 @@ def test_a_family_left_out_is_never_scored_and_the_winner_stays(synth, monkeypat
     """``init.search_families``: the descent's motion (forward and 12° sideways) is found by the
     translations alone exactly as by the whole basis, without one orbit refitted; orbits alone try no
     translation. An unknown family is refused."""
-    ang = np.radians(12.0)
-    truth = RATE * DEPTH * torch.tensor([0.0, -np.sin(ang), np.cos(ang), 0, 0, 0], dtype=torch.float64)
-
-    def fake_score(state, hyp, reporter):
-        return float(((hyp.twist - truth) / (RATE * DEPTH)).square().sum())
-
-    monkeypatch.setattr(motion_search, "score", fake_score)
-    sets = [f"gaussians.init_depth={DEPTH}", f"init.search_rate={RATE}", "init.search_polls=0"]
+    _, sets = score_by_distance_to_a_descent(monkeypatch)
     every = search_motion(synth_state(synth, *sets, "init.search_veer=20"))
     moved = search_motion(synth_state(synth, *sets, "init.search_veer=20", "init.search_families=translate"))
     assert moved.best.name == every.best.name and torch.equal(moved.best.twist, every.best.twist)
