@@ -112,6 +112,5 @@ def test_a_map_off_the_target_still_reports_its_coverage_and_spill():
     )
     s = metrics.summary()
     assert np.isnan(s["depth_err_pct"]) and np.isnan(s["depth_l1_m"])
-    assert s["depth_coverage"] == 0.0 and s["depth_spill"] == pytest.approx(
-        1.0
-    )  # the frame without target skipped
+    assert s["depth_coverage"] == 0.0
+    assert s["depth_spill"] == pytest.approx(1.0)  # the frame without the target skipped
