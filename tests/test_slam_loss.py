@@ -218,3 +218,21 @@ def test_blur_backward_matches_conv2d_autograd_and_finite_differences():
     assert torch.autograd.gradcheck(
         lambda t: _blur_valid(t, k), (x[:1, :1, :9, :8].detach().requires_grad_(),)
     )
+
+
+def test_blur_in_float32_matches_a_float64_conv2d_and_refuses_what_it_cannot_filter():
+    """The Rust core's float32 path (the SLAM's) against torch's conv2d in float64; a kernel wider than
+    the image, an integer tensor: clear errors."""
+    gen = torch.Generator().manual_seed(1)
+    x = torch.rand(2, 5, 30, 41, dtype=torch.float64, generator=gen)
+    k = _gaussian_kernel(11, 1.5, torch.float64)
+    ref = torch.nn.functional.conv2d(
+        torch.nn.functional.conv2d(x.reshape(-1, 1, 30, 41), k.view(1, 1, 1, -1)), k.view(1, 1, -1, 1)
+    ).reshape(2, 5, 20, 31)
+    got = _blur_valid(x.float(), k.float())
+    assert got.dtype == torch.float32 and got.shape == (2, 5, 20, 31)
+    assert torch.allclose(got.double(), ref, atol=1e-6)
+    with pytest.raises(ValueError, match="at least 11×11"):
+        _blur_valid(x[..., :10, :], k)
+    with pytest.raises(ValueError, match="float32 or float64"):
+        _blur_valid(x.to(torch.int32), k)

@@ -5,6 +5,7 @@ use pyo3::prelude::*;
 
 mod events;
 mod frames;
+mod loss;
 mod raster;
 mod sim;
 
@@ -14,6 +15,7 @@ fn core_module(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     events::register(m)?;
     frames::register(m)?;
+    loss::register(m)?;
     raster::register(m)?;
     sim::register(m)?;
     Ok(())

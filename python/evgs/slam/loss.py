@@ -14,6 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from evgs import _core
 from evgs.config import LossConfig
 from evgs.slam.depth import mean_depth
 
@@ -45,23 +46,29 @@ def _gaussian_kernel(size: int, sigma: float, dtype: torch.dtype) -> Tensor:
 
 
 def _correlate_valid(x: Tensor, k: Tensor) -> Tensor:
-    """Separable "valid" correlation of the last two axes with the 1-D kernel ``k`` (no autograd)."""
-    n, taps = len(k), k.tolist()
-    w = x.shape[-1] - n + 1
-    rows = x[..., :, :w] * taps[0]
-    for i in range(1, n):
-        rows.add_(x[..., :, i : i + w], alpha=taps[i])
-    h = x.shape[-2] - n + 1
-    out = rows[..., :h, :] * taps[0]
-    for i in range(1, n):
-        out.add_(rows[..., i : i + h, :], alpha=taps[i])
-    return out
+    """Separable "valid" correlation of the last two axes with the 1-D kernel ``k`` (no autograd), in
+    the Rust core (``evgs._core.correlate_valid_*``): the same arithmetic as torch's ``mul`` then
+    ``add_(alpha=k[i])`` per tap, bit for bit, without 44 small ops' dispatch and OpenMP barriers, which
+    took a quarter of every optimisation step on two cores (docs/ablations.md §68)."""
+    *lead, height, width = x.shape
+    correlate = {torch.float32: _core.correlate_valid_f32, torch.float64: _core.correlate_valid_f64}
+    if x.dtype not in correlate or x.device.type != "cpu":
+        raise ValueError(f"blur: CPU float32 or float64 tensors only, got {x.dtype} on {x.device}")
+    planes = math.prod(lead)
+    out = correlate[x.dtype](
+        x.detach().contiguous().view(-1).numpy(),
+        planes,
+        height,
+        width,
+        k.detach().to(device="cpu", dtype=x.dtype).contiguous().numpy(),
+    )
+    return torch.from_numpy(out).view(*lead, height - len(k) + 1, width - len(k) + 1)
 
 
 class _BlurValid(torch.autograd.Function):
     """``_correlate_valid`` with its adjoint as the backward (a full correlation with the flipped
     kernel). On the CPU, torch's conv2d with a 1×11 single-channel kernel, and above all its backward,
-    cost ~20× more than these fused multiply-adds and dominated every optimisation step."""
+    cost ~20× more than fused multiply-adds, and torch's own loop of them ~10× more than the Rust core's."""
 
     @staticmethod
     def forward(ctx, x: Tensor, k: Tensor) -> Tensor:

@@ -1,0 +1,87 @@
+"""The SSIM term of the event loss, forward and backward, with its Gaussian window blurred three ways.
+
+Run: ``make dev && PYTHONPATH=python $VENV/bin/python benches/loss_bench.py`` (or ``make bench``).
+Prints milliseconds per ``(1 − SSIM).backward()`` on a batch of two float32 renders at the coarse
+(160×120) and full (640×480) levels, on the SLAM's two torch threads:
+- ``evgs``: the Rust core's separable blur (``evgs.slam.loss``, what the SLAM runs);
+- ``torch loop``: the same fused multiply-adds as 44 torch ops (evgs's blur before §68, bit-identical);
+- ``torch conv2d``: two 1-D convolutions with torch's autograd.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import torch
+import torch.nn.functional as F
+from evgs.slam import loss
+from torch import Tensor
+
+Blur = Callable[[Tensor, Tensor], Tensor]
+
+
+def torch_loop(x: Tensor, k: Tensor) -> Tensor:
+    """The peer: one ``mul`` and ``n − 1`` ``add_(alpha=k[i])`` per pass, autograd through them."""
+    n, taps = len(k), k.tolist()
+    w, h = x.shape[-1] - n + 1, x.shape[-2] - n + 1
+    rows = x[..., :, :w] * taps[0]
+    for i in range(1, n):
+        rows = rows.add(x[..., :, i : i + w], alpha=taps[i])
+    out = rows[..., :h, :] * taps[0]
+    for i in range(1, n):
+        out = out.add(rows[..., i : i + h, :], alpha=taps[i])
+    return out
+
+
+def torch_conv2d(x: Tensor, k: Tensor) -> Tensor:
+    flat = x.reshape(-1, 1, *x.shape[-2:])
+    out = F.conv2d(F.conv2d(flat, k.view(1, 1, 1, -1)), k.view(1, 1, -1, 1))
+    return out.reshape(*x.shape[:-2], *out.shape[-2:])
+
+
+def ssim_term(a: Tensor, b: Tensor, blur: Blur) -> Tensor:
+    """``1 − SSIM`` as ``evgs.slam.loss.ssim`` computes it, with the blur swapped."""
+    k = loss._gaussian_kernel(11, 1.5, a.dtype)
+    mu_a, mu_b, aa, bb, ab = blur(torch.stack([a, b, a * a, b * b, a * b], 1), k).unbind(1)
+    var_a, var_b, cov = aa - mu_a**2, bb - mu_b**2, ab - mu_a * mu_b
+    c1, c2 = 0.01**2, 0.03**2
+    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
+    return 1 - s.mean()
+
+
+def ms_per_call(a: Tensor, b: Tensor, blur: Blur, reps: int) -> float:
+    def step() -> None:
+        a.grad = None
+        ssim_term(a, b, blur).backward()
+
+    step()
+    best = float("inf")
+    for _ in range(3):
+        t0 = time.perf_counter()
+        for _ in range(reps):
+            step()
+        best = min(best, (time.perf_counter() - t0) / reps)
+    return best * 1e3
+
+
+def main() -> None:
+    torch.set_num_threads(2)
+    gen = torch.Generator().manual_seed(0)
+    blurs: dict[str, Blur] = {
+        "evgs": loss._blur_valid,
+        "torch loop": torch_loop,
+        "torch conv2d": torch_conv2d,
+    }
+    print(f"{'renders':>14} " + " ".join(f"{name:>13}" for name in blurs) + "   (ms per forward + backward)")
+    for h, w, reps in [(120, 160, 50), (480, 640, 5)]:
+        a = torch.rand(2, h, w, generator=gen, requires_grad=True)
+        b = torch.rand(2, h, w, generator=gen)
+        times = {name: ms_per_call(a, b, blur, reps) for name, blur in blurs.items()}
+        speedup = min(v for k, v in times.items() if k != "evgs") / times["evgs"]
+        cells = " ".join(f"{t:13.2f}" for t in times.values())
+        print(f"{f'2 × {w}×{h}':>14} {cells}   evgs {speedup:.1f}× the faster peer")
+
+
+if __name__ == "__main__":
+    main()
