@@ -196,6 +196,13 @@ def rasterize_backward(
 ) -> tuple[_F32, _F32, _F32, _F32, _F32, _F32, _F32, int]:
     """Flat gradients (means, log_scales, quats, opacities, colors, viewmats, grad2d_norm, evaluations)."""
 
+# --- loss (src/py/loss.rs) ---
+
+def correlate_valid_f32(x: _F32, planes: int, height: int, width: int, taps: _F32) -> _F32: ...
+def correlate_valid_f64(
+    x: npt.NDArray[np.float64], planes: int, height: int, width: int, taps: npt.NDArray[np.float64]
+) -> npt.NDArray[np.float64]: ...
+
 # --- sim (src/py/sim.rs) ---
 
 class EventSimulator:
