@@ -49,7 +49,7 @@ def _correlate_valid(x: Tensor, k: Tensor) -> Tensor:
     """Separable "valid" correlation of the last two axes with the 1-D kernel ``k`` (no autograd), in
     the Rust core (``evgs._core.correlate_valid_*``): the same arithmetic as torch's ``mul`` then
     ``add_(alpha=k[i])`` per tap, bit for bit, without 44 small ops' dispatch and OpenMP barriers, which
-    took a quarter of every optimisation step on two cores (docs/ablations.md §68)."""
+    took a quarter of the motion search's time on two cores (docs/ablations.md §68)."""
     *lead, height, width = x.shape
     correlate = {torch.float32: _core.correlate_valid_f32, torch.float64: _core.correlate_valid_f64}
     if x.dtype not in correlate or x.device.type != "cpu":
@@ -68,7 +68,7 @@ def _correlate_valid(x: Tensor, k: Tensor) -> Tensor:
 class _BlurValid(torch.autograd.Function):
     """``_correlate_valid`` with its adjoint as the backward (a full correlation with the flipped
     kernel). On the CPU, torch's conv2d with a 1×11 single-channel kernel, and above all its backward,
-    cost ~20× more than fused multiply-adds, and torch's own loop of them ~10× more than the Rust core's."""
+    cost ~20× more than fused multiply-adds, and torch's own loop of them 2–4× more than the Rust core's."""
 
     @staticmethod
     def forward(ctx, x: Tensor, k: Tensor) -> Tensor:
