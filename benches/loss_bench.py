@@ -2,13 +2,18 @@
 
 Run: ``make dev && PYTHONPATH=python $VENV/bin/python benches/loss_bench.py`` (or ``make bench``).
 Prints milliseconds per ``(1 − SSIM).backward()`` on a batch of two float32 renders at the coarse
-(160×120) and full (640×480) levels, on the SLAM's two torch threads:
+(160×120) and full (640×480) levels, on the SLAM's two torch threads with its OpenMP wait policy
+(``PASSIVE``, as the ``evgs`` command sets it: idle threads sleep, so every small op pays a wake-up):
 - ``evgs``: the Rust core's separable blur (``evgs.slam.loss``, what the SLAM runs);
 - ``torch loop``: the same fused multiply-adds as 44 torch ops (evgs's blur before §68, bit-identical);
 - ``torch conv2d``: two 1-D convolutions with torch's autograd.
 """
 
 from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads, as evgs.cli does
 
 import time
 from collections.abc import Callable

@@ -68,7 +68,7 @@ def _correlate_valid(x: Tensor, k: Tensor) -> Tensor:
 class _BlurValid(torch.autograd.Function):
     """``_correlate_valid`` with its adjoint as the backward (a full correlation with the flipped
     kernel). On the CPU, torch's conv2d with a 1×11 single-channel kernel, and above all its backward,
-    cost ~20× more than fused multiply-adds, and torch's own loop of them 2–4× more than the Rust core's."""
+    cost ~20× more than fused multiply-adds, and torch's own loop of them 2.4× the Rust core's."""
 
     @staticmethod
     def forward(ctx, x: Tensor, k: Tensor) -> Tensor:
