@@ -196,6 +196,28 @@ def rasterize_backward(
 ) -> tuple[_F32, _F32, _F32, _F32, _F32, _F32, _F32, int]:
     """Flat gradients (means, log_scales, quats, opacities, colors, viewmats, grad2d_norm, evaluations)."""
 
+def rasterize_pose_jvp(
+    means: _F32,
+    log_scales: _F32,
+    quats: _F32,
+    opacities: _F32,
+    colors: _F32,
+    channels: int,
+    viewmats: _F32,
+    tangents: _F32,
+    width: int,
+    height: int,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    near: float,
+    far: float,
+    background: _F32,
+) -> tuple[_F32, _F32, _F32]:
+    """Flat (color, alpha, d_color): a render and, in forward mode, the colour's derivative along six
+    tangents (B, 6, 4, 4) of each view, laid out (B, H, W, 6, C)."""
+
 # --- loss (src/py/loss.rs) ---
 
 def correlate_valid_f32(x: _F32, planes: int, height: int, width: int, taps: _F32) -> _F32: ...

@@ -21,7 +21,7 @@ from torch import Tensor
 from evgs import _core
 from evgs.data.sequence import Camera
 
-__all__ = ["RenderResult", "raster_camera", "render"]
+__all__ = ["PoseJvp", "RenderResult", "raster_camera", "render", "render_pose_jvp"]
 
 
 class _Sink:
@@ -110,6 +110,24 @@ class _Rasterize(torch.autograd.Function):
         return (*grads, None, None, None, None, None)
 
 
+def _check_inputs(means: Tensor, log_scales: Tensor, quats: Tensor, opacities: Tensor, colors: Tensor,
+                  viewmats: Tensor) -> None:  # fmt: skip
+    n = means.shape[0]
+    shapes = {"means": (means, (n, 3)), "log_scales": (log_scales, (n, 3)), "quats": (quats, (n, 4)),
+              "opacities": (opacities, (n,))}  # fmt: skip
+    for name, (t, shape) in shapes.items():
+        if tuple(t.shape) != shape:
+            raise ValueError(f"render: {name} has shape {tuple(t.shape)}, expected {shape}")
+    if colors.ndim != 2 or colors.shape[0] != n or not 1 <= colors.shape[1] <= 3:
+        raise ValueError(f"render: colors has shape {tuple(colors.shape)}, expected ({n}, C) with C in 1..3")
+    if viewmats.ndim != 3 or viewmats.shape[1:] != (4, 4):
+        raise ValueError(f"render: viewmats has shape {tuple(viewmats.shape)}, expected (B, 4, 4)")
+
+
+def _background(background: float | Tensor, channels: int) -> np.ndarray:
+    return _flat(torch.as_tensor(background, dtype=torch.float32).reshape(-1).expand(channels))
+
+
 def render(
     means: Tensor,
     log_scales: Tensor,
@@ -126,18 +144,7 @@ def render(
     """Render B views of N Gaussians (see the module docstring); gradients flow to every tensor input
     except ``background``. Shapes: means, log_scales (N, 3); quats (N, 4); opacities (N,);
     colors (N, C) with C in 1..3; viewmats (B, 4, 4)."""
-    n = means.shape[0]
-    shapes = {"means": (means, (n, 3)), "log_scales": (log_scales, (n, 3)), "quats": (quats, (n, 4)),
-              "opacities": (opacities, (n,))}  # fmt: skip
-    for name, (t, shape) in shapes.items():
-        if tuple(t.shape) != shape:
-            raise ValueError(f"render: {name} has shape {tuple(t.shape)}, expected {shape}")
-    if colors.ndim != 2 or colors.shape[0] != n or not 1 <= colors.shape[1] <= 3:
-        raise ValueError(f"render: colors has shape {tuple(colors.shape)}, expected ({n}, C) with C in 1..3")
-    if viewmats.ndim != 3 or viewmats.shape[1:] != (4, 4):
-        raise ValueError(f"render: viewmats has shape {tuple(viewmats.shape)}, expected (B, 4, 4)")
-    c = colors.shape[1]
-    bg = torch.as_tensor(background, dtype=torch.float32).reshape(-1).expand(c)
+    _check_inputs(means, log_scales, quats, opacities, colors, viewmats)
     sink = _Sink()
     outputs = _Rasterize.apply(
         means,
@@ -149,7 +156,50 @@ def render(
         camera,
         float(near),
         float(far),
-        _flat(bg),
+        _background(background, colors.shape[1]),
         sink,
     )
     return RenderResult(*outputs, _sink=sink)
+
+
+@dataclass
+class PoseJvp:
+    color: Tensor  # (B, H, W, C)
+    alpha: Tensor  # (B, H, W)
+    d_color: Tensor  # (B, H, W, 6, C): the colour's derivative along each view's six tangents
+
+
+def render_pose_jvp(
+    means: Tensor,
+    log_scales: Tensor,
+    quats: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    tangents: Tensor,
+    camera: Camera,
+    *,
+    near: float = 0.01,
+    far: float = 1e10,
+    background: float | Tensor = 0.0,
+) -> PoseJvp:
+    """Render B views and, in forward mode, the colour's derivative along six tangents of each view
+    (``tangents`` (B, 6, 4, 4): d viewmat / d coordinate): a pose's whole Jacobian in one pass, where
+    central differences take twelve renders. No autograd; culling and each pixel's contributors are held
+    fixed, as in :func:`render`'s backward pass."""
+    _check_inputs(means, log_scales, quats, opacities, colors, viewmats)
+    b = viewmats.shape[0]
+    if tuple(tangents.shape) != (b, 6, 4, 4):
+        raise ValueError(f"render: tangents has shape {tuple(tangents.shape)}, expected ({b}, 6, 4, 4)")
+    c, cam = colors.shape[1], raster_camera(camera)
+    flat = [_flat(t) for t in (means, log_scales, quats, opacities, colors)]
+    color, alpha, d_color = _core.rasterize_pose_jvp(
+        *flat, c, _flat(viewmats), _flat(tangents), cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
+        float(near), float(far), _background(background, c),
+    )  # fmt: skip
+    h, w = camera.height, camera.width
+    return PoseJvp(
+        torch.from_numpy(color).view(b, h, w, c),
+        torch.from_numpy(alpha).view(b, h, w),
+        torch.from_numpy(d_color).view(b, h, w, 6, c),
+    )

@@ -138,9 +138,42 @@ fn rasterize_backward<'py>(
     ))
 }
 
+/// Render B views and the colour's derivative along six tangents of each view (forward mode);
+/// returns flat `(color, alpha, d_color)`, `d_color` laid out (B, H, W, 6, C).
+#[allow(clippy::too_many_arguments, clippy::type_complexity)]
+#[pyfunction]
+#[pyo3(signature = (means, log_scales, quats, opacities, colors, channels, viewmats, tangents, width, height, fx, fy, cx, cy, near, far, background))]
+fn rasterize_pose_jvp<'py>(
+    py: Python<'py>,
+    means: Array<'py>,
+    log_scales: Array<'py>,
+    quats: Array<'py>,
+    opacities: Array<'py>,
+    colors: Array<'py>,
+    channels: usize,
+    viewmats: Array<'py>,
+    tangents: Array<'py>,
+    width: u32,
+    height: u32,
+    fx: f32,
+    fy: f32,
+    cx: f32,
+    cy: f32,
+    near: f32,
+    far: f32,
+    background: Array<'py>,
+) -> PyResult<(Out<'py, f32>, Out<'py, f32>, Out<'py, f32>)> {
+    let gs = gaussians(&means, &log_scales, &quats, &opacities, &colors, channels)?;
+    let cam = Camera { width, height, fx, fy, cx, cy, near, far };
+    let (views, dviews, bg) = (viewmats.as_slice()?, tangents.as_slice()?, background.as_slice()?);
+    let out = py.detach(|| raster::forward_jvp(&gs, views, dviews, &cam, bg)).map_err(to_py_err)?;
+    Ok((out.forward.color.into_pyarray(py), out.forward.alpha.into_pyarray(py), out.d_color.into_pyarray(py)))
+}
+
 pub(crate) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<RasterState>()?;
     m.add_function(wrap_pyfunction!(rasterize_forward, m)?)?;
     m.add_function(wrap_pyfunction!(rasterize_backward, m)?)?;
+    m.add_function(wrap_pyfunction!(rasterize_pose_jvp, m)?)?;
     Ok(())
 }

@@ -11,6 +11,7 @@ mod camera;
 mod fastmath;
 mod forward;
 mod project;
+mod tangent;
 mod tiles;
 
 use rayon::prelude::*;
@@ -21,7 +22,8 @@ use crate::error::{Error, Result};
 use backward::{backward_tile, TileGradIn};
 use camera::View;
 use forward::{render_tile, TileCounts, TileJob, TileOut};
-use project::{project, project_backward, Params, Projected, SplatGrad};
+use project::{project, project_backward, project_tangent, Params, Projected, SplatGrad, SplatTangent};
+use tangent::{tangent_tile, DIRS};
 use tiles::{bin, pairs_by_splat, split_by_offsets, Bins};
 
 /// Pixels per tile.
@@ -270,6 +272,66 @@ pub fn forward(gs: &Gaussians, viewmats: &[f32], cam: &Camera, background: &[f32
         backward_evaluations_standard: backward_standard,
     };
     Ok(Forward { color, depth, alpha, radii, state })
+}
+
+/// A forward pass and the derivative of its colour along six tangents of each view.
+pub struct PoseJvp {
+    pub forward: Forward,
+    /// (B, H, W, 6, C): `∂C/∂s` along each view's six tangents.
+    pub d_color: Vec<f32>,
+}
+
+/// Render B views and, in forward mode, the colour's derivative along six tangents `(dR, dt)` of each
+/// view, `tangents` (B, 6, 4, 4) row-major (the last rows are ignored): one pass where central
+/// differences would take twelve renders. Its derivative is the backward pass's transpose: culling,
+/// tile lists and which splats each pixel composites are held fixed.
+pub fn forward_jvp(
+    gs: &Gaussians,
+    viewmats: &[f32],
+    tangents: &[f32],
+    cam: &Camera,
+    background: &[f32],
+) -> Result<PoseJvp> {
+    let forward = forward(gs, viewmats, cam, background)?;
+    let b = forward.state.views.len();
+    if tangents.len() != b * DIRS * 16 || tangents.iter().any(|v| !v.is_finite()) {
+        return Err(Error::Invalid(format!(
+            "raster: tangents must be finite ({b}, {DIRS}, 4, 4); got {} values",
+            tangents.len()
+        )));
+    }
+    let (nc, lims) = (forward.state.channels, cam.fov_limits());
+    let splat_tangents: Vec<Vec<[SplatTangent; DIRS]>> = viewmats
+        .chunks_exact(16)
+        .zip(tangents.chunks_exact(DIRS * 16))
+        .zip(&forward.state.views)
+        .map(|((m, dm), vs)| {
+            let view = View::from_row_major(m);
+            let dirs: [View; DIRS] = std::array::from_fn(|d| View::from_row_major(&dm[16 * d..16 * (d + 1)]));
+            (0..gs.len())
+                .into_par_iter()
+                .map(|i| match vs.proj[i].radius {
+                    0 => [[0.0; 5]; DIRS],
+                    _ => project_tangent(&gs.params(i), &view, cam, &lims, &dirs),
+                })
+                .collect()
+        })
+        .collect();
+    let mut d_color = vec![0.0f32; forward.color.len() * DIRS];
+    let jobs: Vec<(TileJob, &[[SplatTangent; DIRS]], &[u32])> = forward
+        .state
+        .views
+        .iter()
+        .zip(&splat_tangents)
+        .flat_map(|(v, tan)| {
+            tile_jobs(cam, v).zip(v.last.chunks(AREA)).map(move |(job, last)| (job, &tan[..], last))
+        })
+        .collect();
+    let bg = &forward.state.background;
+    jobs.into_par_iter()
+        .zip(tile_rows(&mut d_color, cam, DIRS * nc).into_par_iter())
+        .for_each(|((job, tan, last), out)| with_channels!(nc, tangent_tile, &job, tan, last, bg, out));
+    Ok(PoseJvp { forward, d_color })
 }
 
 /// Gaussians per block of the projection backward; the per-view pose gradient is summed per block
@@ -538,6 +600,80 @@ mod tests {
         let f = forward(&Gaussians { opacities: &ops, ..gs }, &VIEWS[..16], &CAM, &[0.0]).unwrap();
         assert_eq!(f.state.forward_evaluations_standard, 3 * pixels);
         assert_eq!(f.state.backward_evaluations_standard, 3 * pixels);
+    }
+
+    /// Six tangent directions per view: translations and infinitesimal rotations `[ω]× R`, t-part too.
+    fn pose_tangents(views: &[f32]) -> Vec<f32> {
+        let mut out = Vec::new();
+        for m in views.chunks_exact(16) {
+            for d in 0..DIRS {
+                let mut hat = [[0.0f32; 4]; 4];
+                if d < 3 {
+                    hat[d][3] = 1.0;
+                } else {
+                    let (i, j) = [(2, 1), (0, 2), (1, 0)][d - 3];
+                    hat[i][j] = 1.0;
+                    hat[j][i] = -1.0;
+                }
+                // d(exp(ε·hat)·V)/dε = hat·V.
+                for r in 0..4 {
+                    for c in 0..4 {
+                        out.push((0..4).map(|k| hat[r][k] * m[4 * k + c]).sum());
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    /// `⟨y, J·t⟩` from the JVP equals `⟨Jᵀ·y, t⟩` from the backward pass's view gradient, for every
+    /// view and direction: the two passes linearise the same function.
+    #[test]
+    fn pose_jvp_is_the_transpose_of_the_backward_pass() {
+        let scene = Scene::new(300);
+        let gs = scene.gaussians();
+        let tangents = pose_tangents(&VIEWS);
+        let jvp = forward_jvp(&gs, &VIEWS, &tangents, &CAM, &[0.1, 0.2]).unwrap();
+        let f = &jvp.forward;
+        let y: Vec<f32> = (0..f.color.len()).map(|i| ((i * 37) % 11) as f32 / 5.0 - 1.0).collect();
+        let zeros = vec![0.0; f.depth.len()];
+        let g = backward(&gs, &VIEWS, &f.state, &y, &zeros, &zeros).unwrap();
+        let (hw, nc) = (CAM.num_pixels(), 2);
+        for v in 0..2 {
+            for d in 0..DIRS {
+                let mut forward_mode = 0.0f64;
+                for p in 0..hw {
+                    for ch in 0..nc {
+                        let at = ((v * hw + p) * DIRS + d) * nc + ch;
+                        forward_mode += f64::from(y[(v * hw + p) * nc + ch]) * f64::from(jvp.d_color[at]);
+                    }
+                }
+                let t = &tangents[(v * DIRS + d) * 16..(v * DIRS + d + 1) * 16];
+                let reverse: f64 = (0..12).map(|k| f64::from(g.viewmats[v * 16 + k]) * f64::from(t[k])).sum();
+                let tol = 2e-4 * forward_mode.abs().max(reverse.abs()).max(1.0);
+                assert!(
+                    (forward_mode - reverse).abs() < tol,
+                    "view {v} dir {d}: {forward_mode} vs {reverse}"
+                );
+            }
+        }
+        assert_eq!(jvp.d_color.len(), f.color.len() * DIRS);
+        assert!(jvp.d_color.iter().any(|&x| x.abs() > 1e-3));
+    }
+
+    #[test]
+    fn pose_jvp_has_identical_bits_for_any_thread_count() {
+        let scene = Scene::new(600);
+        let gs = scene.gaussians();
+        let tangents = pose_tangents(&VIEWS);
+        let with = |threads| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| forward_jvp(&gs, &VIEWS, &tangents, &CAM, &[0.1, 0.2]).unwrap().d_color)
+        };
+        let one: Vec<u32> = with(1).iter().map(|x| x.to_bits()).collect();
+        assert_eq!(one, with(2).iter().map(|x| x.to_bits()).collect::<Vec<_>>());
+        let bad = forward_jvp(&gs, &VIEWS, &tangents[..95], &CAM, &[0.1, 0.2]);
+        assert!(matches!(bad, Err(Error::Invalid(m)) if m.contains("tangents")));
     }
 
     #[test]

@@ -325,6 +325,57 @@ pub(crate) fn project_backward(
     }
 }
 
+/// How one splat moves along one tangent of its view: `(du, dv, da, db, dc)`.
+pub(crate) type SplatTangent = [f32; 5];
+
+/// Forward-mode derivative of [`project`]'s `(u, v, a, b, c)` along each tangent `(dR, dt)` of the view,
+/// for a Gaussian that was not culled. It linearises the same function as [`project_backward`] (the
+/// clamped `x'`, `y'` of the field-of-view clamp detached), so the two are each other's transpose.
+pub(crate) fn project_tangent<const K: usize>(
+    g: &Params,
+    view: &View,
+    cam: &Camera,
+    lims: &[f32; 4],
+    tangents: &[View; K],
+) -> [SplatTangent; K] {
+    let geo = geometry(g, view, cam, lims);
+    let (x, y, z) = (geo.p.x, geo.p.y, geo.p.z);
+    let (fx, fy) = (cam.fx, cam.fy);
+    let (iz, iz2) = (1.0 / z, 1.0 / (z * z));
+    let iz3 = iz2 * iz;
+    let conic = geo.cov2d.try_inverse().unwrap_or_else(Matrix2::zeros);
+    let mu = Vector3::new(g.mean[0], g.mean[1], g.mean[2]);
+    let cov_rt = geo.cov_world * view.r.transpose();
+    let jac_cov = geo.jac * geo.cov_cam;
+    tangents.map(|d| {
+        // p = R μ + t, Σ_c = R Σ Rᵀ.
+        let dp = d.r * mu + d.t;
+        let half = d.r * cov_rt;
+        let d_cov_cam = half + half.transpose();
+        let dtx = if geo.clamped_x { 0.0 } else { dp.x };
+        let dty = if geo.clamped_y { 0.0 } else { dp.y };
+        let d_jac = Matrix2x3::new(
+            -fx * dp.z * iz2,
+            0.0,
+            -fx * dtx * iz2 + 2.0 * fx * geo.tx * dp.z * iz3,
+            0.0,
+            -fy * dp.z * iz2,
+            -fy * dty * iz2 + 2.0 * fy * geo.ty * dp.z * iz3,
+        );
+        // Σ2D = J Σ_c Jᵀ + 0.3 I, and the conic is its inverse.
+        let side = d_jac * jac_cov.transpose();
+        let d_cov2d = side + side.transpose() + geo.jac * d_cov_cam * geo.jac.transpose();
+        let d_conic = -(conic * d_cov2d * conic);
+        [
+            fx * (dp.x * iz - x * dp.z * iz2),
+            fy * (dp.y * iz - y * dp.z * iz2),
+            d_conic[(0, 0)],
+            d_conic[(0, 1)],
+            d_conic[(1, 1)],
+        ]
+    })
+}
+
 /// `∂L/∂q` from `∂L/∂R(q̂)`, through the normalisation `q̂ = q/|q|`.
 fn quat_backward([w, x, y, z]: [f32; 4], inv_norm: f32, g: &Matrix3<f32>) -> [f32; 4] {
     let gw = 2.0
