@@ -90,6 +90,7 @@ class TrackingConfig:
     velocity_prior_frames: int
     span_frames: int
     lm_windows: int
+    lm_jacobian: Literal["central", "analytic"]
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,7 @@ import torch
 from torch import Tensor
 
 from evgs.config import TrackingConfig
-from evgs.render import render
+from evgs.render import render, render_pose_jvp
 from evgs.slam.lie import se3_exp, se3_inverse
 from evgs.slam.loss import event_mask, pointwise_error, predicted_events, valid_mask
 from evgs.slam.optimize import StageReporter, StageSpec, range_unit, window_times
@@ -60,6 +60,38 @@ class Residuals:
     alpha: Tensor  # (V, 2, B, h, w) rendered alpha at the window starts and ends
     ranges: Tensor | None  # (V, S) the range meter's relative errors (NaN = unused), None without samples
     rates: Tensor | None  # (V, S − 1) the meter's closing-rate errors (NaN = a jump), None without pairs
+    jacobian: Tensor | None = None  # (6, B, h, w) ``∂Ê/∂δ`` at variant 0 (:func:`linearised`), else None
+
+
+def trial_knots(knots: Tensor, knot: int, delta: Tensor) -> Tensor:
+    """The knots (K, 4, 4) with ``knot`` moved by the increment ``delta`` (6,) on its right."""
+    trial = knots.clone()
+    trial[knot] = knots[knot] @ se3_exp(delta)
+    return trial
+
+
+def meter_residuals(
+    state: SlamState, trials: list[Tensor], span: tuple[int, int], unit: float | None
+) -> tuple[Tensor | None, Tensor | None]:  # fmt: skip
+    """The range meter's residuals ``(ranges, rates)`` (metres per map unit ``unit``) of V trial knot
+    sets at its samples in the chunks of the event index range ``span``; None where there are none."""
+    traj, cfg, prior = state.traj, state.cfg, state.range_prior
+    ranges = rates = None
+    if prior is None:
+        return ranges, rates
+    t_lo, t_hi = state.data.time_span(span)
+    t_r, metres = prior.samples(t_lo, t_hi, traj)
+    if len(t_r) and unit is not None:
+        range_views = se3_inverse(torch.cat([traj.pose_at(t_r, trial) for trial in trials])).float()
+        q = prior.residuals(state.gaussians, range_views, np.tile(metres, len(trials)), unit)
+        ranges = q.reshape(len(trials), len(t_r))
+    t_r, metres, steady = prior.rate_samples(t_lo, t_hi, traj)
+    if steady.any() and cfg.scale.rate_weight:
+        poses = torch.stack([traj.pose_at(t_r, trial) for trial in trials])
+        # the axes of the increment itself (variant 0): the meter does not see where the camera points
+        rates = closing_residuals(poses, poses[0, :, :3, 2], metres, prior.seed_unit)
+        rates[:, ~torch.from_numpy(steady)] = float("nan")  # a jump: not used (meter_rows)
+    return ranges, rates
 
 
 def residuals(
@@ -72,36 +104,53 @@ def residuals(
     with torch.no_grad():
         knots = traj.knots()
         times = window_times(win)
-        trials = []
-        for d in deltas:
-            trial = knots.clone()
-            trial[knot] = knots[knot] @ se3_exp(d)
-            trials.append(trial)
-        poses = [traj.pose_at(times, trial) for trial in trials]
-        viewmats = se3_inverse(torch.cat(poses)).float()
+        trials = [trial_knots(knots, knot, d) for d in deltas]
+        viewmats = se3_inverse(torch.cat([traj.pose_at(times, trial) for trial in trials])).float()
         out = render(
             **state.gaussians.render_inputs(), viewmats=viewmats,
             camera=scaled_camera(state.data.camera, factor), background=cfg.gaussians.background,
         )  # fmt: skip
-        ranges = rates = None
-        prior = state.range_prior
-        if prior is not None:
-            t_lo, t_hi = state.data.time_span(span)
-            t_r, metres = prior.samples(t_lo, t_hi, traj)
-            if len(t_r) and unit is not None:
-                range_views = se3_inverse(torch.cat([traj.pose_at(t_r, trial) for trial in trials])).float()
-                q = prior.residuals(state.gaussians, range_views, np.tile(metres, len(deltas)), unit)
-                ranges = q.reshape(len(deltas), len(t_r))
-            t_r, metres, steady = prior.rate_samples(t_lo, t_hi, traj)
-            if steady.any() and cfg.scale.rate_weight:
-                poses = torch.stack([traj.pose_at(t_r, trial) for trial in trials])
-                # the axes of the increment itself (variant 0): the meter does not see where the camera points
-                rates = closing_residuals(poses, poses[0, :, :3, 2], metres, prior.seed_unit)
-                rates[:, ~torch.from_numpy(steady)] = float("nan")  # a jump: not used (meter_rows)
+        ranges, rates = meter_residuals(state, trials, span, unit)
     b = len(win.starts)
     gray = out.color[..., 0].reshape(len(deltas), 2, b, *out.color.shape[1:3])
     alpha = out.alpha.reshape(len(deltas), 2, b, *out.alpha.shape[1:3])
     return Residuals(predicted_events(gray[:, 0], gray[:, 1], cfg.loss) - win.frames, alpha, ranges, rates)
+
+
+def linearised(
+    state: SlamState, knot: int, delta: Tensor, variants: Tensor, win: Windows, factor: int,
+    span: tuple[int, int], unit: float | None,
+) -> Residuals:  # fmt: skip
+    """The residuals at the increment ``delta`` and their analytic Jacobian ``∂Ê/∂δ`` (tracking.lm_jacobian
+    = "analytic"): the windows' view matrices are differentiated in ``δ`` through the trajectory's
+    interpolation (forward-mode autograd, float64), the renders along those tangents by the rasterizer's
+    forward-mode pass (one pass instead of twelve renders), and ``Ê`` by the chain rule. The range
+    meter's few residuals keep their central differences at ``delta + variants``."""
+    traj, cfg = state.traj, state.cfg
+    with torch.no_grad():
+        knots = traj.knots()
+        times = window_times(win)
+
+        def views(d: Tensor) -> Tensor:
+            return se3_inverse(traj.pose_at(times, trial_knots(knots, knot, d)))
+
+        tangents = torch.func.jacfwd(views)(delta).permute(0, 3, 1, 2)  # (2B, 6, 4, 4)
+        out = render_pose_jvp(
+            **state.gaussians.render_inputs(), viewmats=views(delta).float(), tangents=tangents.float(),
+            camera=scaled_camera(state.data.camera, factor), background=cfg.gaussians.background,
+        )  # fmt: skip
+        trials = [trial_knots(knots, knot, d) for d in delta + variants]
+        ranges, rates = meter_residuals(state, trials, span, unit)
+    b, (h, w) = len(win.starts), out.color.shape[1:3]
+    gray = out.color[..., 0].reshape(2, b, h, w)
+    d_gray = out.d_color[..., 0].reshape(2, b, h, w, 6).permute(0, 4, 1, 2, 3)  # (2, 6, B, h, w)
+    with torch.enable_grad():  # Ê is elementwise in the two renders: one backward gives both slopes
+        ends = [g.clone().requires_grad_() for g in gray]
+        events = predicted_events(ends[0], ends[1], cfg.loss)
+        slopes = torch.autograd.grad(events.sum(), ends)
+    jacobian = slopes[0] * d_gray[0] + slopes[1] * d_gray[1]
+    alpha = out.alpha.reshape(1, 2, b, h, w)
+    return Residuals((events.detach() - win.frames)[None], alpha, ranges, rates, jacobian)
 
 
 def meter_cost(weight: float, q: Tensor | None, used: Tensor | None) -> float:
@@ -188,16 +237,22 @@ def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None =
             win = fixed[factor]
         else:
             win = fixed[factor] = data.windows(sampler, tc.lm_windows, factor)
-        res = residuals(state, knot, delta + variants, win, factor, spec.span, unit)
+        if tc.lm_jacobian == "analytic":
+            res = linearised(state, knot, delta, variants, win, factor, spec.span, unit)
+        else:
+            res = residuals(state, knot, delta + variants, win, factor, spec.span, unit)
         mask = valid_mask(res.alpha[0, 0], res.alpha[0, 1], tc.mask_border // factor, tc.mask_alpha)
         if cfg.loss.event_mask_threshold >= 0:
             mask &= event_mask(win.frames, cfg.loss.event_mask_threshold)
         n_events += win.n_events
         if int(mask.sum()) < 6:  # nothing to constrain the pose with at this level
             continue
-        r = res.events[:, mask].double()  # (13, P)
-        jac = (r[1:7] - r[7:13]) / (2 * eps[:, None])  # (6, P)
-        r0 = r[0]
+        r0 = res.events[0][mask].double()  # (P,)
+        if res.jacobian is not None:
+            jac = res.jacobian[:, mask].double()  # (6, P)
+        else:
+            r = res.events[:, mask].double()  # (13, P)
+            jac = (r[1:7] - r[7:13]) / (2 * eps[:, None])
         w = 1.0 / r0.abs().clamp(min=cfg.data.event_contrast) if kind == "l1" else torch.ones_like(r0)
         hess = (jac * w) @ jac.T
         grad = (jac * w) @ r0
