@@ -182,6 +182,19 @@ def test_trajectory_hits_knots_and_interpolates_batched():
         traj.pose_at([4001])
 
 
+def test_pose_at_takes_a_batch_of_knot_sets():
+    """V trial knot sets (V, K, 4, 4) in one call give what V calls give, to the last bit."""
+    traj, T = make_traj()
+    sets = torch.stack([T, T @ se3_exp(rand_twists(4, 0.1, seed=3)), T.flip(0)])
+    t = np.array([0, 500, 2000, 3500, 4000])
+    batched = traj.pose_at(t, sets)
+    assert batched.shape == (3, 5, 4, 4)
+    for v in range(3):
+        assert torch.equal(batched[v], traj.pose_at(t, sets[v]))
+    one = Trajectory(np.array([7]), T[:1].numpy())
+    assert one.pose_at([7, 7], sets[:, :1]).shape == (3, 2, 4, 4)
+
+
 def test_gradients_flow_to_the_two_bracketing_knots_only():
     traj, _ = make_traj()
     traj.pose_at([1500]).sum().backward()

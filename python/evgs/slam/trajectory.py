@@ -103,7 +103,8 @@ class Trajectory(torch.nn.Module):
 
     def pose_at(self, t_us: Tensor | np.ndarray, knots: Tensor | None = None) -> Tensor:
         """(M, 4, 4) float64 camera-to-world poses at integer-µs times inside the knot range; ``knots``
-        (K, 4, 4) replaces the current knots (a pose solver's trial values)."""
+        (..., K, 4, 4) replaces the current knots (a pose solver's trial values; a batch of V sets gives
+        (V, M, 4, 4) in one pass)."""
         t = torch.as_tensor(np.asarray(t_us), dtype=torch.int64).reshape(-1)
         lo, hi = int(self.t_us[0]), int(self.t_us[-1])
         outside = (t < lo) | (t > hi)
@@ -112,11 +113,11 @@ class Trajectory(torch.nn.Module):
             raise ValueError(f"trajectory: time {bad} µs is outside the knot range [{lo}, {hi}] µs")
         knots = self.knots() if knots is None else knots
         if len(self) == 1:
-            return knots.expand(len(t), 4, 4)
+            return knots.expand(*knots.shape[:-3], len(t), 4, 4)
         seg = (torch.searchsorted(self.t_us, t, right=True) - 1).clamp(0, len(self) - 2)
         t0, t1 = self.t_us[seg], self.t_us[seg + 1]
         tau = (t - t0).to(torch.float64) / (t1 - t0).to(torch.float64)
-        return interpolate(knots[seg], knots[seg + 1], tau, self.method)
+        return interpolate(knots[..., seg, :, :], knots[..., seg + 1, :, :], tau, self.method)
 
     def viewmats_at(self, t_us: Tensor | np.ndarray) -> Tensor:
         """(M, 4, 4) float32 world-to-camera matrices, the rasterizer's ``viewmats``."""
