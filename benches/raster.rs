@@ -4,7 +4,7 @@
 //! in pixel–Gaussian evaluations in the standard (3DGS/gsplat) sense, the sense of the speed targets.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
-use evgs::raster::{backward, forward, forward_jvp, Camera, Gaussians};
+use evgs::raster::{backward, forward, forward_jvp, twist_tangents, Camera, Gaussians};
 
 /// splitmix64: a deterministic uniform stream in [0, 1) without a dependency.
 struct Rng(u64);
@@ -29,6 +29,19 @@ struct Cloud {
     quats: Vec<f32>,
     opacities: Vec<f32>,
     colors: Vec<f32>,
+}
+
+impl Cloud {
+    fn gaussians(&self) -> Gaussians<'_> {
+        Gaussians {
+            means: &self.means,
+            log_scales: &self.log_scales,
+            quats: &self.quats,
+            opacities: &self.opacities,
+            colors: &self.colors,
+            channels: 1,
+        }
+    }
 }
 
 /// Gaussians on the surfaces of a 1.6×1.6×2.4 m body and two 4×1.2 m panels, sized to tile them.
@@ -90,14 +103,7 @@ fn bench(cr: &mut Criterion) {
     group.sample_size(10);
     for n in [10_000, 100_000] {
         let c = spacecraft(n);
-        let gs = Gaussians {
-            means: &c.means,
-            log_scales: &c.log_scales,
-            quats: &c.quats,
-            opacities: &c.opacities,
-            colors: &c.colors,
-            channels: 1,
-        };
+        let gs = c.gaussians();
         let out = forward(&gs, &vm, &cam, &[0.0]).unwrap();
         group.throughput(Throughput::Elements(out.state.forward_evaluations_standard));
         group.bench_with_input(BenchmarkId::new("forward", n), &gs, |b, gs| {
@@ -112,49 +118,23 @@ fn bench(cr: &mut Criterion) {
     group.finish();
 }
 
-/// A view moved by `ε` along each of the six twists (translation, rotation), left-multiplied:
-/// `exp(ε·ξ̂)·V ≈ (I + ε·ξ̂)·V` for the central differences, `ξ̂·V` for the forward-mode tangents.
-fn twisted(vm: &[f32], eps: f32) -> Vec<f32> {
-    let mut out = Vec::new();
-    for d in 0..6 {
-        let mut hat = [[0.0f32; 4]; 4];
-        if d < 3 {
-            hat[d][3] = 1.0;
-        } else {
-            let (i, j) = [(2, 1), (0, 2), (1, 0)][d - 3];
-            hat[i][j] = 1.0;
-            hat[j][i] = -1.0;
-        }
-        for r in 0..4 {
-            for c in 0..4 {
-                let moved: f32 = (0..4).map(|k| hat[r][k] * vm[4 * k + c]).sum();
-                out.push(if eps == 0.0 { moved } else { vm[4 * r + c] + eps * moved });
-            }
-        }
-    }
-    out
-}
-
 /// Tracking's pose Jacobian for one view: the forward-mode pass against the 13 renders of central
 /// differences (the view and ±ε along each coordinate, one batched call), which it replaces.
 fn pose_jacobian(cr: &mut Criterion) {
     let (cam, vm) = view(320, 240);
     let mut group = cr.benchmark_group("pose_jacobian_320x240");
     group.sample_size(10);
-    let tangents = twisted(&vm, 0.0);
+    let tangents = twist_tangents(&vm);
+    // exp(±ε·ξ̂)·V ≈ V ± ε·ξ̂·V: the view and its twelve neighbours.
     let mut variants = vm.clone();
-    variants.extend(twisted(&vm, 1e-3));
-    variants.extend(twisted(&vm, -1e-3));
+    for sign in [1.0f32, -1.0] {
+        for t in tangents.chunks_exact(16) {
+            variants.extend(vm.iter().zip(t).map(|(v, d)| v + sign * 1e-3 * d));
+        }
+    }
     for n in [10_000, 100_000] {
         let c = spacecraft(n);
-        let gs = Gaussians {
-            means: &c.means,
-            log_scales: &c.log_scales,
-            quats: &c.quats,
-            opacities: &c.opacities,
-            colors: &c.colors,
-            channels: 1,
-        };
+        let gs = c.gaussians();
         group.bench_with_input(BenchmarkId::new("forward_jvp", n), &gs, |b, gs| {
             b.iter(|| forward_jvp(gs, &vm, &tangents, &cam, &[0.0]).unwrap())
         });

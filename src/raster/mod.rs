@@ -274,6 +274,32 @@ pub fn forward(gs: &Gaussians, viewmats: &[f32], cam: &Camera, background: &[f32
     Ok(Forward { color, depth, alpha, radii, state })
 }
 
+/// The (B, 6, 4, 4) tangents `d(exp(ε·ξ̂)·V)/dε = ξ̂·V` of B row-major view matrices along the six unit
+/// twists `ξ` (translation x, y, z, then rotation about x, y, z), perturbing each view on the left, in
+/// its camera frame: the directions a pose solver moves a camera in, as [`forward_jvp`] takes them.
+pub fn twist_tangents(viewmats: &[f32]) -> Vec<f32> {
+    let mut out = Vec::with_capacity(viewmats.len() * DIRS);
+    for m in viewmats.chunks_exact(16) {
+        for d in 0..DIRS {
+            let mut hat = [[0.0f32; 4]; 4];
+            if d < 3 {
+                hat[d][3] = 1.0;
+            } else {
+                let (i, j) = [(2, 1), (0, 2), (1, 0)][d - 3];
+                hat[i][j] = 1.0;
+                hat[j][i] = -1.0;
+            }
+            for row in hat {
+                out.extend((0..4).map(|c| (0..4).map(|k| row[k] * m[4 * k + c]).sum::<f32>()));
+            }
+        }
+    }
+    out
+}
+
+/// One tile of the tangent pass: its job, its view's splat tangents, the forward pass's last contributors.
+type TangentJob<'a> = (TileJob<'a>, &'a [[SplatTangent; DIRS]], &'a [u32]);
+
 /// A forward pass and the derivative of its colour along six tangents of each view.
 pub struct PoseJvp {
     pub forward: Forward,
@@ -318,7 +344,7 @@ pub fn forward_jvp(
         })
         .collect();
     let mut d_color = vec![0.0f32; forward.color.len() * DIRS];
-    let jobs: Vec<(TileJob, &[[SplatTangent; DIRS]], &[u32])> = forward
+    let jobs: Vec<TangentJob> = forward
         .state
         .views
         .iter()
@@ -602,37 +628,13 @@ mod tests {
         assert_eq!(f.state.backward_evaluations_standard, 3 * pixels);
     }
 
-    /// Six tangent directions per view: translations and infinitesimal rotations `[ω]× R`, t-part too.
-    fn pose_tangents(views: &[f32]) -> Vec<f32> {
-        let mut out = Vec::new();
-        for m in views.chunks_exact(16) {
-            for d in 0..DIRS {
-                let mut hat = [[0.0f32; 4]; 4];
-                if d < 3 {
-                    hat[d][3] = 1.0;
-                } else {
-                    let (i, j) = [(2, 1), (0, 2), (1, 0)][d - 3];
-                    hat[i][j] = 1.0;
-                    hat[j][i] = -1.0;
-                }
-                // d(exp(ε·hat)·V)/dε = hat·V.
-                for r in 0..4 {
-                    for c in 0..4 {
-                        out.push((0..4).map(|k| hat[r][k] * m[4 * k + c]).sum());
-                    }
-                }
-            }
-        }
-        out
-    }
-
     /// `⟨y, J·t⟩` from the JVP equals `⟨Jᵀ·y, t⟩` from the backward pass's view gradient, for every
     /// view and direction: the two passes linearise the same function.
     #[test]
     fn pose_jvp_is_the_transpose_of_the_backward_pass() {
         let scene = Scene::new(300);
         let gs = scene.gaussians();
-        let tangents = pose_tangents(&VIEWS);
+        let tangents = twist_tangents(&VIEWS);
         let jvp = forward_jvp(&gs, &VIEWS, &tangents, &CAM, &[0.1, 0.2]).unwrap();
         let f = &jvp.forward;
         let y: Vec<f32> = (0..f.color.len()).map(|i| ((i * 37) % 11) as f32 / 5.0 - 1.0).collect();
@@ -665,7 +667,7 @@ mod tests {
     fn pose_jvp_has_identical_bits_for_any_thread_count() {
         let scene = Scene::new(600);
         let gs = scene.gaussians();
-        let tangents = pose_tangents(&VIEWS);
+        let tangents = twist_tangents(&VIEWS);
         let with = |threads| {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
             pool.install(|| forward_jvp(&gs, &VIEWS, &tangents, &CAM, &[0.1, 0.2]).unwrap().d_color)
