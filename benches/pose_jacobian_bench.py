@@ -20,17 +20,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from evgs.data.sequence import Camera  # noqa: E402
 from evgs.render import render, render_pose_jvp  # noqa: E402
+from evgs.slam.lie import se3_hat  # noqa: E402
 from raster_bench import spacecraft  # noqa: E402
-
-
-def twists() -> torch.Tensor:
-    """(6, 4, 4) the unit twists ``ξ̂`` (translation, rotation)."""
-    hats = torch.zeros(6, 4, 4)
-    for k in range(3):
-        hats[k, k, 3] = 1.0
-    for k, (i, j) in enumerate([(2, 1), (0, 2), (1, 0)]):
-        hats[3 + k, i, j], hats[3 + k, j, i] = 1.0, -1.0
-    return hats
 
 
 def views(b: int) -> torch.Tensor:
@@ -69,7 +60,7 @@ def main() -> None:
         f = 0.5 * width / np.tan(np.radians(30.0))
         cam = Camera(width=width, height=height, fx=f, fy=f, cx=width / 2 - 0.5, cy=height / 2 - 0.5)
         vm = views(4)
-        tangents = twists()[None] @ vm[:, None]  # d(exp(ε·ξ̂)·V)/dε
+        tangents = se3_hat(torch.eye(6))[None] @ vm[:, None]  # d(exp(ε·ξ̂)·V)/dε for the six unit twists
         moved = 1e-3 * tangents.transpose(0, 1)  # (6, B, 4, 4)
         variants = torch.cat([vm[None], vm + moved, vm - moved]).reshape(-1, 4, 4)
         for n in (10_000, 50_000):

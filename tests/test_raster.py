@@ -14,6 +14,7 @@ import pytest
 import torch
 from evgs.data.sequence import Camera
 from evgs.render import _flat, raster_camera, render, render_pose_jvp
+from evgs.slam.lie import se3_hat
 from raster_reference import render_reference
 
 CAM = Camera(width=40, height=28, fx=36.0, fy=34.0, cx=19.3, cy=14.1)
@@ -128,13 +129,8 @@ def test_gradients_match_reference_autograd(channels: int) -> None:
 
 
 def se3_exp(xi: np.ndarray) -> torch.Tensor:
-    """Exp of the twist ``(ρ, θ)`` as a 4×4 matrix (float64)."""
-    hat = torch.zeros(4, 4, dtype=torch.float64)
-    r, t = xi[:3], xi[3:]
-    hat[:3, 3] = torch.tensor(r)
-    hat[0, 1], hat[0, 2], hat[1, 2] = -t[2], t[1], -t[0]
-    hat[1, 0], hat[2, 0], hat[2, 1] = t[2], -t[1], t[0]
-    return torch.linalg.matrix_exp(hat)
+    """Exp of the twist ``(ρ, θ)`` as a 4×4 matrix (float64), by the matrix exponential."""
+    return torch.linalg.matrix_exp(se3_hat(torch.as_tensor(xi, dtype=torch.float64)))
 
 
 def test_pose_gradient_matches_se3_finite_differences() -> None:
@@ -163,12 +159,7 @@ def test_pose_gradient_matches_se3_finite_differences() -> None:
 
 def twist_tangents(vm: torch.Tensor) -> torch.Tensor:
     """(B, 6, 4, 4) float64 ``d(exp(ε·ξ̂)·V)/dε = ξ̂·V`` for the six unit twists (translation, rotation)."""
-    hats = torch.zeros(6, 4, 4, dtype=torch.float64)
-    for k in range(3):
-        hats[k, k, 3] = 1.0
-    for k, (i, j) in enumerate([(2, 1), (0, 2), (1, 0)]):
-        hats[3 + k, i, j], hats[3 + k, j, i] = 1.0, -1.0
-    return hats[None] @ vm.double()[:, None]
+    return se3_hat(torch.eye(6, dtype=torch.float64))[None] @ vm.double()[:, None]
 
 
 @pytest.mark.parametrize("channels", [1, 3])

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from evgs.slam.lie import hat, project_se3, se3_exp, se3_inverse, se3_log, so3_exp, so3_log
+from evgs.slam.lie import hat, project_se3, se3_exp, se3_hat, se3_inverse, se3_log, so3_exp, so3_log
 from evgs.slam.trajectory import Trajectory, constant_velocity, interpolate, random_knots
 from scipy.spatial.transform import Rotation
 
@@ -61,6 +61,12 @@ def test_log_at_exactly_pi_gives_a_valid_rotation_vector():
 def test_round_trip_float32(angle: float):
     xi = rand_twists(64, angle).float()
     assert (se3_log(se3_exp(xi)) - xi).abs().max() < 2e-6
+
+
+def test_se3_hat_is_the_generator_of_se3_exp():
+    xi = rand_twists(5, 0.8, seed=4)
+    torch.testing.assert_close(torch.linalg.matrix_exp(se3_hat(xi)), se3_exp(xi), rtol=0, atol=1e-12)
+    assert se3_hat(xi).shape == (5, 4, 4) and torch.all(se3_hat(xi)[:, 3] == 0)
 
 
 def test_se3_inverse():

@@ -25,6 +25,15 @@ def hat(phi: Tensor) -> Tensor:
     return torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(*phi.shape[:-1], 3, 3)
 
 
+def se3_hat(xi: Tensor) -> Tensor:
+    """(..., 6) twists ``(ρ, φ)`` → (..., 4, 4) ``[[hat(φ), ρ], [0, 0]]``, whose matrix exponential is
+    :func:`se3_exp`: the tangent of a pose moved along ``ξ`` on the left is ``se3_hat(ξ) @ T``."""
+    out = torch.zeros(*xi.shape[:-1], 4, 4, dtype=xi.dtype)
+    out[..., :3, :3] = hat(xi[..., 3:])
+    out[..., :3, 3] = xi[..., :3]
+    return out
+
+
 def vee(m: Tensor) -> Tensor:
     """Inverse of :func:`hat` applied to the skew part of (..., 3, 3) matrices."""
     return 0.5 * torch.stack(
