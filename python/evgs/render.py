@@ -112,6 +112,7 @@ class _Rasterize(torch.autograd.Function):
 
 def _check_inputs(means: Tensor, log_scales: Tensor, quats: Tensor, opacities: Tensor, colors: Tensor,
                   viewmats: Tensor) -> None:  # fmt: skip
+    """Refuse mismatched shapes here, with the tensor's name: the Rust core would only see flat buffers."""
     n = means.shape[0]
     shapes = {"means": (means, (n, 3)), "log_scales": (log_scales, (n, 3)), "quats": (quats, (n, 4)),
               "opacities": (opacities, (n,))}  # fmt: skip
@@ -125,6 +126,7 @@ def _check_inputs(means: Tensor, log_scales: Tensor, quats: Tensor, opacities: T
 
 
 def _background(background: float | Tensor, channels: int) -> np.ndarray:
+    """One background value per channel, as the flat float32 buffer the core takes (a scalar is broadcast)."""
     return _flat(torch.as_tensor(background, dtype=torch.float32).reshape(-1).expand(channels))
 
 
