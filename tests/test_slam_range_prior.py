@@ -324,10 +324,10 @@ def test_penalty_gradient_matches_finite_differences(synth):
 
 SOLVERS = pytest.mark.parametrize(
     "solver_sets",
-    [("tracking.solver=lm", "tracking.num_opti_steps=8"),
+    [("tracking.solver=lm", "tracking.num_opti_steps=8", "tracking.lm_jacobian=central"),
      ("tracking.solver=lm", "tracking.num_opti_steps=8", "tracking.lm_jacobian=analytic"),
      ("tracking.solver=adam", "tracking.num_opti_steps=40", "trajectory.pose_lr=3e-3")],
-    ids=["lm", "lm-analytic", "adam"],
+    ids=["lm-central", "lm-analytic", "adam"],
 )  # fmt: skip
 K = 4  # the knot the tracking tests start from: they track knot K + 1
 

@@ -183,7 +183,12 @@ def reprojection_px(T: torch.Tensor, T_gt: torch.Tensor, points: torch.Tensor, f
     [
         ("tracking.solver=adam", "tracking.num_opti_steps=60", "trajectory.pose_lr=3e-3"),
         # Curvature: a few steps suffice. The perturbed start is the prediction the prior pulls towards.
-        ("tracking.solver=lm", "tracking.num_opti_steps=8", "tracking.velocity_prior=0"),
+        (
+            "tracking.solver=lm",
+            "tracking.num_opti_steps=8",
+            "tracking.velocity_prior=0",
+            "tracking.lm_jacobian=central",
+        ),
         (
             "tracking.solver=lm",
             "tracking.num_opti_steps=8",
@@ -191,7 +196,7 @@ def reprojection_px(T: torch.Tensor, T_gt: torch.Tensor, points: torch.Tensor, f
             "tracking.lm_jacobian=analytic",
         ),
     ],
-    ids=["adam", "lm", "lm-analytic"],
+    ids=["adam", "lm-central", "lm-analytic"],
 )
 def test_tracking_recovers_a_perturbed_pose(synth, solver_sets):
     _, scene = synth

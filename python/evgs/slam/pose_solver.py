@@ -7,13 +7,15 @@ rotation on an orbit) and dithers by ``pose_lr`` around the optimum. Gauss–New
 takes the whole step at once; the damping keeps it safe where the linearisation is poor.
 
 One iteration: windows from the sampler, residuals ``r = Ê − E`` of the masked pixels at the current
+increment and their Jacobian ``J`` from the rasterizer's forward-mode pose pass (:func:`linearised`,
+``tracking.lm_jacobian = "analytic"``, the default), or, with ``"central"``, the residuals at the
 increment and at ``±ε`` along each of the six coordinates (central differences, all 13 variants in one
-batched render, no backward pass; or, with ``tracking.lm_jacobian = "analytic"``, the residuals at the
-increment and their Jacobian from the rasterizer's forward-mode pose pass, :func:`linearised`), ``J``,
-the damped normal equations ``(JᵀWJ + λ·diag JᵀWJ) Δ = −JᵀWr`` (``W`` = IRLS weights for the L1 loss, 1
-for MSE), and one more render of the trial increment on the same
-windows: accepted (λ shrinks) if the loss falls, rejected (λ grows) otherwise. Only the event term of
-eq. 8 is minimised: the SSIM term regularises the map's brightness, which tracking does not change.
+batched render, no backward pass; twelve more renders per step, and spikes where a splat crosses its
+alpha or extent cut-off, docs/ablations.md §69), the damped normal equations
+``(JᵀWJ + λ·diag JᵀWJ) Δ = −JᵀWr`` (``W`` = IRLS weights for the L1 loss, 1 for MSE), and one more render
+of the trial increment on the same windows: accepted (λ shrinks) if the loss falls, rejected (λ grows)
+otherwise. Only the event term of eq. 8 is minimised: the SSIM term regularises the map's brightness,
+which tracking does not change.
 
 ``tracking.lm_windows`` = n > 0 draws n windows once per tracked frame (at each resolution level) and
 runs every iteration on them instead of on fresh ones: the steps then descend one objective, where with
