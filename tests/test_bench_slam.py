@@ -147,7 +147,8 @@ def test_crashed_runs_become_failed_rows(tmp_path: Path, data_root: Path, monkey
     """A child killed by a signal and one that exits with an error: both rows failed with the reason, the
     suite goes on, and the killed child's peak memory is its own (it touched 300 MiB)."""
     crash = {
-        0: "import os, signal; b = b'x' * (300 << 20); os.kill(os.getpid(), signal.SIGKILL)",
+        # It holds the 300 MiB for a moment: where the peak is polled, its last POLL_S is not seen.
+        0: "import os, signal, time; b = b'x' * (300 << 20); time.sleep(0.5); os.kill(os.getpid(), 9)",
         1: "import sys; print('loading'); sys.exit('evgs: error: boom')",
     }
     monkeypatch.setattr(slam, "child_argv", lambda spec, _: [sys.executable, "-c", crash[spec.seed]])
@@ -246,3 +247,15 @@ def test_sigterm_stops_the_running_child_before_the_suite(tmp_path: Path):
     assert proc.wait(timeout=60) == -signal.SIGTERM  # the suite still ends as SIGTERM ends it
     with pytest.raises(ProcessLookupError):
         os.kill(child, 0)  # stopped and reaped
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="VmHWM is Linux's")
+def test_peak_memory_is_the_childs_own_not_the_suites(tmp_path: Path):
+    """A suite that holds 400 MiB spawns a run that touches 100 MiB: the run's peak is about 100 MiB (Linux
+    keeps the high-water mark of the image ``exec`` replaced, so ``wait4``'s ``ru_maxrss`` says 400)."""
+    held = np.ones(400 * 2**20 // 8)  # touched, so resident
+    run = "import time, numpy as np; a = np.ones(100 * 2**20 // 8); time.sleep(1.0)"
+    result = slam.run_child([sys.executable, "-c", run], tmp_path / "child.log")
+    assert result.exit_code == 0
+    assert 100 < result.peak_rss_gib * 1024 < 300, result.peak_rss_gib * 1024  # MiB: numpy's import + 100
+    assert held.sum() > 0

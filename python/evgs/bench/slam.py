@@ -4,7 +4,12 @@ aggregated into one table (``runs.csv``, ``summary.csv``, ``summary.md`` in the 
 Layout of a suite directory ``OUT``: ``OUT/<preset>/seed<N>/`` holds one run slot: the child's output
 (``<sequence>/<timestamp>/``, the usual run directory), ``child.log`` (its stdout and stderr) and
 ``child.json`` (exit code, wall time, peak RSS). A separate process per run gives each run its own peak
-memory (``wait4``'s rusage of that child) and turns a crash into a failed row instead of the suite's end.
+memory and turns a crash into a failed row instead of the suite's end.
+
+The peak: ``wait4``'s ``ru_maxrss`` is the larger of the child's own high-water mark and that of the
+memory image its ``exec`` replaced, which was this process's (the kernel keeps both), and this process
+grows as it evaluates runs. So where ``ru_maxrss`` does not exceed this process's high-water mark at the
+spawn, the peak is the child's ``VmHWM`` (Linux ``/proc``), polled while it runs (:func:`wait_with_peak`).
 """
 
 from __future__ import annotations
@@ -140,9 +145,42 @@ def _raise_terminated(signum: int, frame: object) -> None:
     raise _Terminated
 
 
+POLL_S = 0.1
+"""Seconds between two reads of the child's ``VmHWM``: where the peak is polled, growth in its last POLL_S
+is not seen."""
+
+
+def vm_hwm_kib(pid: int) -> int | None:
+    """The peak resident set of ``pid``'s current memory image (``VmHWM``, KiB), or None where ``/proc``
+    does not say (another OS, or the process has exited)."""
+    try:
+        with open(f"/proc/{pid}/status") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return None
+
+
+def wait_with_peak(pid: int, spawner_hwm: int | None) -> tuple[int, int]:
+    """Wait for ``pid``; its wait status and peak RSS in KiB. ``ru_maxrss`` when it exceeds the spawning
+    process's high-water mark ``spawner_hwm`` (KiB; then it is the child's own); else the largest
+    ``VmHWM`` read while the child ran, or ``ru_maxrss`` as an upper bound where none could be read."""
+    polled = None
+    while True:
+        done, status, usage = os.wait4(pid, os.WNOHANG)
+        if done:
+            childs_own = usage.ru_maxrss > (spawner_hwm or 0)
+            return status, usage.ru_maxrss if childs_own or polled is None else polled
+        if (hwm := vm_hwm_kib(pid)) is not None:
+            polled = max(polled or 0, hwm)
+        time.sleep(POLL_S)
+
+
 def run_child(argv: list[str], log_path: Path, append: bool = False) -> ChildResult:
-    """Run ``argv`` with its output in (or, ``append``, added to) ``log_path``; its peak RSS from
-    ``wait4`` (this child only). A SIGTERM meanwhile stops the child first, then this process."""
+    """Run ``argv`` with its output in (or, ``append``, added to) ``log_path``; its peak RSS
+    (:func:`wait_with_peak`). A SIGTERM meanwhile stops the child first, then this process."""
     env = dict(os.environ)
     # The child imports the same evgs as this process, however this one found it.
     package_root = str(Path(evgs.__file__).resolve().parents[1])
@@ -152,12 +190,12 @@ def run_child(argv: list[str], log_path: Path, append: bool = False) -> ChildRes
     previous = signal.signal(signal.SIGTERM, _raise_terminated) or signal.SIG_DFL  # None: set outside Python
     try:
         with open(log_path, "ab" if append else "wb") as log:
-            t0 = time.perf_counter()
+            t0, spawner_hwm = time.perf_counter(), vm_hwm_kib(os.getpid())
             proc = subprocess.Popen(
                 argv, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, env=env
             )
             try:
-                _, status, usage = os.wait4(proc.pid, 0)
+                status, peak_kib = wait_with_peak(proc.pid, spawner_hwm)
             except KeyboardInterrupt:  # the child got the SIGINT too: let it write its checkpoint
                 proc.wait()
                 raise
@@ -173,7 +211,7 @@ def run_child(argv: list[str], log_path: Path, append: bool = False) -> ChildRes
             wall = time.perf_counter() - t0
     finally:
         signal.signal(signal.SIGTERM, previous)
-    return ChildResult(proc.returncode, wall, usage.ru_maxrss * 1024 / 2**30)  # ru_maxrss is in KiB
+    return ChildResult(proc.returncode, wall, peak_kib * 1024 / 2**30)
 
 
 def finished_run(slot: Path) -> Path | None:
