@@ -4,7 +4,7 @@
 //! in pixel–Gaussian evaluations in the standard (3DGS/gsplat) sense, the sense of the speed targets.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
-use evgs::raster::{backward, forward, forward_jvp, twist_tangents, Camera, Gaussians};
+use evgs::raster::{backward, forward, forward_jvp, twist_tangents, Camera, GaussianBuffers};
 
 /// splitmix64: a deterministic uniform stream in [0, 1) without a dependency.
 struct Rng(u64);
@@ -23,29 +23,8 @@ impl Rng {
     }
 }
 
-struct Cloud {
-    means: Vec<f32>,
-    log_scales: Vec<f32>,
-    quats: Vec<f32>,
-    opacities: Vec<f32>,
-    colors: Vec<f32>,
-}
-
-impl Cloud {
-    fn gaussians(&self) -> Gaussians<'_> {
-        Gaussians {
-            means: &self.means,
-            log_scales: &self.log_scales,
-            quats: &self.quats,
-            opacities: &self.opacities,
-            colors: &self.colors,
-            channels: 1,
-        }
-    }
-}
-
 /// Gaussians on the surfaces of a 1.6×1.6×2.4 m body and two 4×1.2 m panels, sized to tile them.
-fn spacecraft(n: usize) -> Cloud {
+fn spacecraft(n: usize) -> GaussianBuffers {
     let boxes = [
         ([0.0, 0.0, 0.0], [0.8, 0.8, 1.2]),
         ([-2.9, 0.0, 0.0], [2.0, 0.6, 0.02]),
@@ -55,7 +34,7 @@ fn spacecraft(n: usize) -> Cloud {
     let total: f32 = boxes.iter().map(|(_, e)| area(e)).sum();
     let spacing = (total / n as f32).sqrt();
     let mut rng = Rng(7);
-    let mut c = Cloud { means: vec![], log_scales: vec![], quats: vec![], opacities: vec![], colors: vec![] };
+    let mut c = GaussianBuffers::new(1);
     for _ in 0..n {
         // A box with probability proportional to its surface area.
         let mut pick = rng.next() * total;
@@ -103,7 +82,7 @@ fn bench(cr: &mut Criterion) {
     group.sample_size(10);
     for n in [10_000, 100_000] {
         let c = spacecraft(n);
-        let gs = c.gaussians();
+        let gs = c.view();
         let out = forward(&gs, &vm, &cam, &[0.0]).unwrap();
         group.throughput(Throughput::Elements(out.state.forward_evaluations_standard));
         group.bench_with_input(BenchmarkId::new("forward", n), &gs, |b, gs| {
@@ -134,7 +113,7 @@ fn pose_jacobian(cr: &mut Criterion) {
     }
     for n in [10_000, 100_000] {
         let c = spacecraft(n);
-        let gs = c.gaussians();
+        let gs = c.view();
         group.bench_with_input(BenchmarkId::new("forward_jvp", n), &gs, |b, gs| {
             b.iter(|| forward_jvp(gs, &vm, &tangents, &cam, &[0.0]).unwrap())
         });

@@ -46,6 +46,36 @@ pub struct Gaussians<'a> {
     pub channels: usize,
 }
 
+/// Owned buffers of a [`Gaussians`] set, for code that builds its own clouds (benches, tests); the
+/// bindings borrow numpy's arrays instead.
+#[derive(Clone, Debug, Default)]
+pub struct GaussianBuffers {
+    pub means: Vec<f32>,
+    pub log_scales: Vec<f32>,
+    pub quats: Vec<f32>,
+    pub opacities: Vec<f32>,
+    pub colors: Vec<f32>,
+    pub channels: usize,
+}
+
+impl GaussianBuffers {
+    /// Empty buffers for `channels` colour channels.
+    pub fn new(channels: usize) -> Self {
+        Self { channels, ..Self::default() }
+    }
+
+    pub fn view(&self) -> Gaussians<'_> {
+        Gaussians {
+            means: &self.means,
+            log_scales: &self.log_scales,
+            quats: &self.quats,
+            opacities: &self.opacities,
+            colors: &self.colors,
+            channels: self.channels,
+        }
+    }
+}
+
 impl Gaussians<'_> {
     pub fn len(&self) -> usize {
         self.opacities.len()
@@ -525,44 +555,22 @@ mod tests {
         0.995, 0.0, 0.0998, 0.1, 0.0, 1.0, 0.0, -0.05, -0.0998, 0.0, 0.995, 0.2, 0.0, 0.0, 0.0, 1.0,
     ];
 
-    struct Scene {
-        means: Vec<f32>,
-        log_scales: Vec<f32>,
-        quats: Vec<f32>,
-        opacities: Vec<f32>,
-        colors: Vec<f32>,
-    }
-
-    impl Scene {
-        /// A deterministic pseudo-random cloud in front of the camera, two colour channels.
-        fn new(n: usize) -> Self {
-            let mut state = 1u32;
-            let mut r = move || {
-                state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
-                (state >> 8) as f32 / (1u32 << 24) as f32
-            };
-            let mut s =
-                Scene { means: vec![], log_scales: vec![], quats: vec![], opacities: vec![], colors: vec![] };
-            for _ in 0..n {
-                s.means.extend([r() - 0.5, 0.6 * (r() - 0.5), 2.0 + r()]);
-                s.log_scales.extend([-3.5 + r(), -3.5 + r(), -3.5 + r()]);
-                s.quats.extend([r() - 0.5, r() - 0.5, r() - 0.5, r() - 0.5]);
-                s.opacities.push(0.2 + 0.7 * r());
-                s.colors.extend([r(), r()]);
-            }
-            s
+    /// A deterministic pseudo-random cloud in front of the camera, two colour channels.
+    fn cloud(n: usize) -> GaussianBuffers {
+        let mut state = 1u32;
+        let mut r = move || {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (state >> 8) as f32 / (1u32 << 24) as f32
+        };
+        let mut s = GaussianBuffers::new(2);
+        for _ in 0..n {
+            s.means.extend([r() - 0.5, 0.6 * (r() - 0.5), 2.0 + r()]);
+            s.log_scales.extend([-3.5 + r(), -3.5 + r(), -3.5 + r()]);
+            s.quats.extend([r() - 0.5, r() - 0.5, r() - 0.5, r() - 0.5]);
+            s.opacities.push(0.2 + 0.7 * r());
+            s.colors.extend([r(), r()]);
         }
-
-        fn gaussians(&self) -> Gaussians<'_> {
-            Gaussians {
-                means: &self.means,
-                log_scales: &self.log_scales,
-                quats: &self.quats,
-                opacities: &self.opacities,
-                colors: &self.colors,
-                channels: 2,
-            }
-        }
+        s
     }
 
     /// Every output bit of a forward + backward pass.
@@ -590,8 +598,8 @@ mod tests {
 
     #[test]
     fn identical_bits_for_any_thread_count() {
-        let scene = Scene::new(600);
-        let gs = scene.gaussians();
+        let scene = cloud(600);
+        let gs = scene.view();
         let with = |threads| {
             rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap().install(|| run_bits(&gs))
         };
@@ -632,8 +640,8 @@ mod tests {
     /// view and direction: the two passes linearise the same function.
     #[test]
     fn pose_jvp_is_the_transpose_of_the_backward_pass() {
-        let scene = Scene::new(300);
-        let gs = scene.gaussians();
+        let scene = cloud(300);
+        let gs = scene.view();
         let tangents = twist_tangents(&VIEWS);
         let jvp = forward_jvp(&gs, &VIEWS, &tangents, &CAM, &[0.1, 0.2]).unwrap();
         let f = &jvp.forward;
@@ -665,8 +673,8 @@ mod tests {
 
     #[test]
     fn pose_jvp_has_identical_bits_for_any_thread_count() {
-        let scene = Scene::new(600);
-        let gs = scene.gaussians();
+        let scene = cloud(600);
+        let gs = scene.view();
         let tangents = twist_tangents(&VIEWS);
         let with = |threads| {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
@@ -680,16 +688,16 @@ mod tests {
 
     #[test]
     fn empty_scene_shows_the_background() {
-        let scene = Scene::new(0);
-        let f = forward(&scene.gaussians(), &VIEWS, &CAM, &[0.1, 0.2]).unwrap();
+        let scene = cloud(0);
+        let f = forward(&scene.view(), &VIEWS, &CAM, &[0.1, 0.2]).unwrap();
         assert!(f.color.chunks(2).all(|c| c == [0.1, 0.2]));
         assert!(f.alpha.iter().all(|&a| a == 0.0) && f.radii.is_empty() && f.evaluations() == 0);
     }
 
     #[test]
     fn bad_inputs_are_reported() {
-        let scene = Scene::new(3);
-        let mut gs = scene.gaussians();
+        let scene = cloud(3);
+        let mut gs = scene.view();
         let err = |gs: &Gaussians, views: &[f32], bg: &[f32]| match forward(gs, views, &CAM, bg) {
             Err(Error::Invalid(m)) => m,
             _ => panic!("expected an error"),
@@ -698,13 +706,13 @@ mod tests {
         assert!(err(&gs, &VIEWS, &[0.0]).contains("background"));
         gs.quats = &scene.quats[..8];
         assert!(err(&gs, &VIEWS, &[0.0, 0.0]).contains("quats"));
-        gs = scene.gaussians();
+        gs = scene.view();
         gs.channels = 4;
         assert!(err(&gs, &VIEWS, &[0.0; 4]).contains("colors"));
-        let f = forward(&scene.gaussians(), &VIEWS, &CAM, &[0.0, 0.0]).unwrap();
+        let f = forward(&scene.view(), &VIEWS, &CAM, &[0.0, 0.0]).unwrap();
         let up = vec![0.0; 5];
         assert!(
-            matches!(backward(&scene.gaussians(), &VIEWS, &f.state, &up, &up, &up), Err(Error::Invalid(m)) if m.contains("grad_color"))
+            matches!(backward(&scene.view(), &VIEWS, &f.state, &up, &up, &up), Err(Error::Invalid(m)) if m.contains("grad_color"))
         );
     }
 }
