@@ -50,6 +50,21 @@ def test_orientation_error_drift_and_ypr_hand_computed():
     assert m.summary()["rot_err_rmse_deg"] == pytest.approx(np.sqrt(np.mean(YAW_DEG**2)), abs=1e-9)
 
 
+def test_gaze_error_reads_a_constant_look_offset():
+    """Cameras on the true path that all look 5° beside where they should (a turn about their own y, as
+    the orbit's gaze offset): the Sim(3) fits the positions exactly, and the gaze error reads 5° at every
+    frame, where the first-pose-aligned error starts at 0."""
+    rng = np.random.default_rng(3)
+    T_gt = orbit(30, rng)
+    look = Rotation.from_euler("y", 5.0, degrees=True).as_matrix()
+    T_est = random_sim3(rng).inverse().apply_poses(make_pose(T_gt[:, :3, :3] @ look, T_gt[:, :3, 3]))
+    m = evaluate_trajectory(T_gt, T_est)
+    assert m.ate_rmse == pytest.approx(0.0, abs=1e-9)
+    np.testing.assert_allclose(m.gaze_error_deg, 5.0, atol=1e-9)
+    assert m.summary()["gaze_err_rmse_deg"] == pytest.approx(5.0, abs=1e-9)
+    assert m.orientation_error_deg[0] == pytest.approx(0.0, abs=1e-9)
+
+
 def test_rotation_angle_accurate_near_zero_and_pi():
     for ang in (1e-9, 1e-4, 1.0, np.pi - 1e-7, np.pi):
         R = Rotation.from_rotvec(ang * np.array([0.6, 0.0, 0.8])).as_matrix()
@@ -117,6 +132,19 @@ def test_ate_matches_evo_ape_sim3(tum_pair):
     assert ours.ate_rmse == pytest.approx(ape.get_statistic(metrics.StatisticsType.rmse), abs=1e-6)
     np.testing.assert_allclose(ours.ate_errors, ape.error, atol=1e-6)
     np.testing.assert_allclose(ours.p_est, est.positions_xyz, atol=1e-6)
+
+
+def test_gaze_error_matches_evo_ape_angle(tum_pair):
+    from evo.core import metrics
+
+    ref, est = _evo_aligned(tum_pair)
+    ape = metrics.APE(metrics.PoseRelation.rotation_angle_deg)
+    ape.process_data((ref, est))
+    ours = _ours(tum_pair)
+    np.testing.assert_allclose(ours.gaze_error_deg, ape.error, atol=1e-6)
+    assert ours.summary()["gaze_err_rmse_deg"] == pytest.approx(
+        ape.get_statistic(metrics.StatisticsType.rmse), abs=1e-6
+    )
 
 
 @pytest.mark.parametrize(("delta", "unit"), [(1, "frames"), (0.5, "m")])

@@ -258,8 +258,8 @@ def evaluate(run_dir: Path, images: bool) -> Row:
     s = ev.traj.summary()
     extent = trajectory_extent(ev.traj.p_gt)
     frames = int(metrics.get("frames", len(ev.assoc.t)))
-    row: Row = {k: s[k] for k in ("ate_rmse", "drift_deg", "ate_x", "ate_y", "ate_z", "rpe_trans_rmse",
-                                  "rpe_rot_rmse_deg")}  # fmt: skip
+    row: Row = {k: s[k] for k in ("ate_rmse", "drift_deg", "gaze_err_rmse_deg", "ate_x", "ate_y", "ate_z",
+                                  "rpe_trans_rmse", "rpe_rot_rmse_deg")}  # fmt: skip
     row.update(frames=frames, extent=extent, ate_pct=ate_percent(s["ate_rmse"], extent))
     row["sim3_scale"] = s["scale"]
     img = ev.images.summary() if ev.images is not None else {}

@@ -18,9 +18,9 @@ Row = dict[str, object]
 # Per-run columns of runs.csv, in order. ``status`` is "ok" or "failed" (``error`` says why).
 RUN_COLUMNS = [
     "preset", "seed", "lighting", "status", "error", "run_dir", "frames", "ate_rmse", "extent", "ate_pct",
-    "drift_deg", "ate_x", "ate_y", "ate_z", "rpe_trans_rmse", "rpe_rot_rmse_deg", "psnr_db", "ssim",
-    "lpips", "s_per_frame", "wall_s", "peak_rss_gib", "metric_scale", "sim3_scale", "scale_err_pct",
-    "range_map_drift_pct", "depth_err_pct",
+    "drift_deg", "gaze_err_rmse_deg", "ate_x", "ate_y", "ate_z", "rpe_trans_rmse", "rpe_rot_rmse_deg",
+    "psnr_db", "ssim", "lpips", "s_per_frame", "wall_s", "peak_rss_gib", "metric_scale", "sim3_scale",
+    "scale_err_pct", "range_map_drift_pct", "depth_err_pct",
 ]  # fmt: skip
 
 
@@ -37,6 +37,7 @@ METRICS = [
     Metric("ate_rmse", "ATE RMSE", ".4g"),
     Metric("ate_pct", "ATE %", ".2f"),
     Metric("drift_deg", "Drift °", ".2f"),
+    Metric("gaze_err_rmse_deg", "Gaze °", ".2f"),
     Metric("ate_x", "ATE x", ".4g"),
     Metric("ate_y", "ATE y", ".4g"),
     Metric("ate_z", "ATE z", ".4g"),

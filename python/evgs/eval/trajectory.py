@@ -1,8 +1,16 @@
 """Trajectory metrics (paper §4): ATE after Sim(3) alignment (eq. 15), per-axis RMSE, orientation error
-after first-pose alignment (eq. 16–17), drift, yaw/pitch/roll RMSE and the relative pose error (RPE).
+after first-pose alignment (eq. 16–17), drift, yaw/pitch/roll RMSE and the relative pose error (RPE);
+beyond the paper, the orientation error under the ATE's own Sim(3) (the gaze error).
+
+The paper's orientation error aligns the first poses' rotations, so a camera that looks a constant angle
+beside where its path says it should (an orbit whose cameras look beside the target's centre, the
+bas-relief trade of docs/ablations.md §33, §36) reads 0 there; under the Sim(3) that aligns the
+positions it reads that angle at every frame.
 
 Conventions (chosen to agree with evo's ``evo_ape tum GT EST -as`` and ``evo_rpe tum GT EST -as``):
 - positions compared after the Umeyama Sim(3) estimate → ground truth; errors in ground-truth units;
+- the gaze error of a frame: the angle of ``R_gt,iᵀ R R_est,i`` with ``R`` the Sim(3)'s rotation (evo's
+  ``evo_ape … -as -r angle_deg``);
 - RPE of a pair (i, j): ``E = (Q_i⁻¹ Q_j)⁻¹ (P_i⁻¹ P_j)`` with Q = ground truth, P = Sim(3)-aligned
   estimate; pairs are consecutive, every ``delta`` frames or every ``delta`` metres of (aligned)
   estimated path;
@@ -117,6 +125,7 @@ class TrajectoryMetrics:
     ypr_rmse_deg: np.ndarray  # (3,) wrapped differences
     orientation_error_deg: np.ndarray  # (N,) eq. 16–17
     drift_deg: float  # orientation error at the last frame
+    gaze_error_deg: np.ndarray  # (N,) orientation error under the Sim(3) (evo's APE angle_deg)
     rpe_frame: RPE  # consecutive frames
     rpe_metre: RPE  # every ``rpe_delta_m`` of path
 
@@ -130,6 +139,7 @@ class TrajectoryMetrics:
             "scale": float(self.sim3.s),
             "drift_deg": float(self.drift_deg),
             "rot_err_rmse_deg": float(rmse(self.orientation_error_deg)),
+            "gaze_err_rmse_deg": float(rmse(self.gaze_error_deg)),
             "yaw_rmse_deg": float(self.ypr_rmse_deg[0]),
             "pitch_rmse_deg": float(self.ypr_rmse_deg[1]),
             "roll_rmse_deg": float(self.ypr_rmse_deg[2]),
@@ -174,6 +184,7 @@ def evaluate_trajectory(
         ypr_rmse_deg=np.asarray(rmse(wrap_deg(ypr_est - ypr_gt), axis=0)),
         orientation_error_deg=orient,
         drift_deg=float(orient[-1]),
+        gaze_error_deg=orientation_errors_deg(R_gt, T_sim[:, :3, :3]),
         rpe_frame=rpe(T_gt, T_sim, 1, "frames"),
         rpe_metre=rpe(T_gt, T_sim, rpe_delta_m, "m"),
     )

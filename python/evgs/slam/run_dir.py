@@ -96,7 +96,10 @@ def trajectory_error(root: Path) -> dict:
         ev = evaluate_run(root, images=False, depth=False)
     except ValueError as e:  # e.g. fewer than 3 poses overlap the ground truth
         return {"trajectory_error": f"not computed: {e}"}
-    keys = ("ate_rmse", "drift_deg", "rot_err_rmse_deg", "scale", "rpe_trans_rmse", "rpe_rot_rmse_deg")
+    keys = (
+        "ate_rmse", "drift_deg", "rot_err_rmse_deg", "gaze_err_rmse_deg", "scale", "rpe_trans_rmse",
+        "rpe_rot_rmse_deg",
+    )  # fmt: skip
     summary = ev.traj.summary()
     return {k: summary[k] for k in keys}
 
