@@ -65,6 +65,19 @@ def test_gaze_error_reads_a_constant_look_offset():
     assert m.orientation_error_deg[0] == pytest.approx(0.0, abs=1e-9)
 
 
+def test_gaze_error_undefined_on_a_straight_path():
+    """An approach along a line: the positions leave the Sim(3)'s turn about the line free, so the gaze
+    error is NaN, while the ATE and the first-pose-aligned errors are as usual."""
+    n, rng = 20, np.random.default_rng(0)
+    path = np.outer(np.linspace(0, 2, n), [0, 0, 1.0]) + rng.normal(scale=1e-5, size=(n, 3))  # a sim's wobble
+    T_gt = make_pose(np.broadcast_to(np.eye(3), (n, 3, 3)), path)
+    T_est = T_gt.copy()
+    T_est[:, :3, 3] += rng.normal(scale=1e-3, size=(n, 3))
+    m = evaluate_trajectory(T_gt, T_est)
+    assert np.isnan(m.gaze_error_deg).all() and np.isnan(m.summary()["gaze_err_rmse_deg"])
+    assert m.ate_rmse < 2e-3 and np.isfinite(m.drift_deg)
+
+
 def test_rotation_angle_accurate_near_zero_and_pi():
     for ang in (1e-9, 1e-4, 1.0, np.pi - 1e-7, np.pi):
         R = Rotation.from_rotvec(ang * np.array([0.6, 0.0, 0.8])).as_matrix()

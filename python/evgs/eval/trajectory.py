@@ -27,6 +27,18 @@ from scipy.spatial.transform import Rotation
 from evgs.eval.align import Sim3, align_first_pose, umeyama
 from evgs.geometry import invert_pose
 
+GAZE_MIN_SPREAD = 3.0
+
+
+def gaze_errors_deg(T_gt: np.ndarray, R_sim: np.ndarray, ate_rmse: float) -> np.ndarray:
+    """(N,) orientation errors of the Sim(3)-aligned rotations ``R_sim``, or NaN where the ground-truth
+    positions' RMS spread across their main axis is below ``GAZE_MIN_SPREAD`` × ``ate_rmse``."""
+    p = T_gt[:, :3, 3] - T_gt[:, :3, 3].mean(0)
+    spread = np.linalg.svd(p, compute_uv=False) / np.sqrt(len(p))
+    if np.hypot(spread[1], spread[2]) < GAZE_MIN_SPREAD * ate_rmse:
+        return np.full(len(T_gt), np.nan)
+    return orientation_errors_deg(T_gt[:, :3, :3], R_sim)
+
 
 def rmse(x: np.ndarray, axis: int | None = None) -> np.ndarray | float:
     return np.sqrt(np.mean(np.square(x), axis=axis))
@@ -125,7 +137,7 @@ class TrajectoryMetrics:
     ypr_rmse_deg: np.ndarray  # (3,) wrapped differences
     orientation_error_deg: np.ndarray  # (N,) eq. 16–17
     drift_deg: float  # orientation error at the last frame
-    gaze_error_deg: np.ndarray  # (N,) orientation error under the Sim(3) (evo's APE angle_deg)
+    gaze_error_deg: np.ndarray  # (N,) orientation error under the Sim(3) (evo's APE angle_deg), or NaN
     rpe_frame: RPE  # consecutive frames
     rpe_metre: RPE  # every ``rpe_delta_m`` of path
 
@@ -167,6 +179,7 @@ def evaluate_trajectory(
     T_sim = sim3.apply_poses(T_est)
     p_gt = T_gt[:, :3, 3]
     diff = T_sim[:, :3, 3] - p_gt
+    ate_rmse = float(rmse(np.linalg.norm(diff, axis=1)))
     R_gt = T_gt[:, :3, :3]
     R_first = align_first_pose(T_gt, T_est)[:, :3, :3]
     ypr_gt = euler_ypr_deg(R_gt)
@@ -177,14 +190,14 @@ def evaluate_trajectory(
         p_gt=p_gt,
         p_est=T_sim[:, :3, 3],
         ate_errors=np.linalg.norm(diff, axis=1),
-        ate_rmse=float(rmse(np.linalg.norm(diff, axis=1))),
+        ate_rmse=ate_rmse,
         axis_rmse=np.asarray(rmse(diff, axis=0)),
         ypr_gt_deg=ypr_gt,
         ypr_est_deg=ypr_est,
         ypr_rmse_deg=np.asarray(rmse(wrap_deg(ypr_est - ypr_gt), axis=0)),
         orientation_error_deg=orient,
         drift_deg=float(orient[-1]),
-        gaze_error_deg=orientation_errors_deg(R_gt, T_sim[:, :3, :3]),
+        gaze_error_deg=gaze_errors_deg(T_gt, T_sim[:, :3, :3], ate_rmse),
         rpe_frame=rpe(T_gt, T_sim, 1, "frames"),
         rpe_metre=rpe(T_gt, T_sim, rpe_delta_m, "m"),
     )
