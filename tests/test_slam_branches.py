@@ -102,3 +102,25 @@ def test_branch_settings_are_checked():
         load_config("synthetic/tiny", ["init.branches=2", "init.motion_search=false"])
     with pytest.raises(ConfigError, match="branch_score"):
         load_config("synthetic/tiny", ["init.branch_score=loss"])
+
+
+@pytest.mark.parametrize("train_knots", [True, False])
+def test_the_initialization_holds_the_knots_on_the_searched_motion_when_asked(synth, train_knots):
+    """``init.train_knots = false``: the initialization fits the map alone, its knots stay on the motion
+    it starts from to the last bit; with true (the default) they move."""
+    s = search_state(
+        synth[0], "init.num_opti_steps_for_init=20", f"init.train_knots={str(train_knots).lower()}"
+    )
+    m = s.num_init_chunks()
+    start_from(s, truth(synth, m))
+    with torch.no_grad():
+        knots, means = s.traj.knots().clone(), s.gaussians["means"].clone()
+    initialize(s)
+    with torch.no_grad():
+        assert torch.equal(s.traj.knots(), knots) != train_knots
+        assert not torch.equal(s.gaussians["means"], means)
+
+
+def test_held_init_knots_need_the_motion_search():
+    with pytest.raises(ConfigError, match="train_knots = false needs init.motion_search"):
+        load_config(overrides=["init.train_knots=false"])

@@ -55,6 +55,7 @@ class InitConfig:
     num_frames: int
     num_opti_steps_for_init: int
     lr_boost: float
+    train_knots: bool
     motion_search: bool
     search_steps: int
     search_rate: float
@@ -329,6 +330,10 @@ def _check_ranges(cfg: Config, source: str) -> None:
             "init.motion_search needs search_steps >= 1, search_rate > 0, search_range > 1, "
             "search_holdout >= 0, search_sized >= 1, 1 <= search_starts <= 2 × search_sized (the sized "
             "orbits and translations), 0 <= search_tilt < 90 and 0 <= search_veer < 90"
+        )
+    if not cfg.init.train_knots and not cfg.init.motion_search:
+        problems.append(
+            "init.train_knots = false needs init.motion_search = true (the knots stay on its best motion)"
         )
     if cfg.init.branches < 1 or cfg.init.branch_frames < 0:
         problems.append("init.branches must be >= 1 (1 = off) and init.branch_frames >= 0")

@@ -59,7 +59,8 @@ def initialize(state: SlamState, reporter: StageReporter | None = None) -> Stage
     cfg = state.cfg
     spec = StageSpec(
         "init", _seq_frame(state, m), cfg.init.num_opti_steps_for_init, state.data.span(0, m),
-        cfg.data.training_batch_size, stage_seed(cfg.seed, "init", m), range(1, m + 1), range(m + 1),
+        cfg.data.training_batch_size, stage_seed(cfg.seed, "init", m),
+        range(1, m + 1) if cfg.init.train_knots else range(0), range(m + 1),
         train_gaussians=True, lr_boost=cfg.init.lr_boost,
     )  # fmt: skip
     record = run_stage(state, spec, reporter)
