@@ -36,10 +36,14 @@ def synth_state(synth, *sets: str):
     return search_state(synth[0], *sets)
 
 
-def test_hypotheses_are_rigid_orbits_about_the_centre_or_translations():
-    hyps = {h.name: h for h in directions(RATE, DEPTH)}
+@pytest.mark.parametrize("orbit_depth", [None, 1.3 * DEPTH])
+def test_hypotheses_are_rigid_orbits_about_the_centre_or_translations(orbit_depth):
+    """The orbits keep their centre (``init_depth``, or ``init.search_orbit_depth`` behind the slab) where
+    every camera looks; the translations' speed stays ``rate × init_depth`` either way."""
+    hyps = {h.name: h for h in directions(RATE, DEPTH, orbit_depth=orbit_depth)}
     assert len(hyps) == 11 and "still" in hyps
-    centre = torch.tensor([0.0, 0.0, DEPTH], dtype=torch.float64)
+    c = DEPTH if orbit_depth is None else orbit_depth
+    centre = torch.tensor([0.0, 0.0, c], dtype=torch.float64)
     for name, h in hyps.items():
         K = h.knots(4)
         R, t = K[:, :3, :3], K[:, :3, 3]
@@ -52,7 +56,7 @@ def test_hypotheses_are_rigid_orbits_about_the_centre_or_translations():
             assert torch.allclose(R, torch.eye(3, dtype=torch.float64).expand(4, 3, 3))
             assert torch.allclose(t.norm(dim=1), torch.arange(4, dtype=torch.float64) * RATE * DEPTH)
     # An orbit about +y moves the camera towards -x (the centre stays ahead): t_x ≈ -rate·depth.
-    assert float(hyps["orbit +y"].knots(2)[1, 0, 3]) == pytest.approx(-RATE * DEPTH, rel=1e-3)
+    assert float(hyps["orbit +y"].knots(2)[1, 0, 3]) == pytest.approx(-RATE * c, rel=1e-3)
 
 
 def test_tilted_orbits_keep_the_centre_and_roll_by_the_tilt():

@@ -68,6 +68,7 @@ class InitConfig:
     search_starts: int
     search_families: Literal["all", "orbit", "translate"]
     search_tilt: float
+    search_orbit_depth: float
     search_veer: float
     search_smooth: bool
     search_range_weight: float
@@ -325,11 +326,13 @@ def _check_ranges(cfg: Config, source: str) -> None:
         or not 1 <= cfg.init.search_starts <= 2 * cfg.init.search_sized
         or not 0 <= cfg.init.search_tilt < 90
         or not 0 <= cfg.init.search_veer < 90
+        or cfg.init.search_orbit_depth < 0
     ):
         problems.append(
             "init.motion_search needs search_steps >= 1, search_rate > 0, search_range > 1, "
             "search_holdout >= 0, search_sized >= 1, 1 <= search_starts <= 2 × search_sized (the sized "
-            "orbits and translations), 0 <= search_tilt < 90 and 0 <= search_veer < 90"
+            "orbits and translations), 0 <= search_tilt < 90, 0 <= search_veer < 90 and "
+            "search_orbit_depth >= 0"
         )
     if not cfg.init.train_knots and not cfg.init.motion_search:
         problems.append(

@@ -15,10 +15,11 @@ docking_good's approach but small orbits about the wrong axis on swirl (docs/abl
 an option, off by default.
 
 The hypotheses are the motions of proximity operations with the target ahead of the camera, at
-``init.search_rate`` per frame: orbits of the point ``(0, 0, init_depth)`` about the camera's x and y
-axes (``init.search_tilt``: also about those axes tilted towards the optical axis, as an orbit seen from
-an elevation is), approach / retreat along the optical axis, sideways translations, each in both
-directions, and no motion (``init.search_half_rate``: each also at half that rate;
+``init.search_rate`` per frame: orbits of the point ``(0, 0, init_depth)`` (or of a point behind the
+seeded slab, ``init.search_orbit_depth``, as a target's centre lies behind the faces the camera sees)
+about the camera's x and y axes (``init.search_tilt``: also about those axes tilted towards the optical
+axis, as an orbit seen from an elevation is), approach / retreat along the optical axis, sideways
+translations, each in both directions, and no motion (``init.search_half_rate``: each also at half that rate;
 ``init.search_families``: the orbits or the translations alone, where the scenario rules the other out).
 The best orbits and the best translations (``init.search_sized`` of each) are sized over ×
 ``search_range``^(±½, ±1): each family's best at its own size, so that an approach slower than the
@@ -97,12 +98,15 @@ class Hypothesis:
         return Hypothesis(f"{name} (meter advance {per_frame:.3g})", twist, self.family)
 
 
-def directions(rate: float, depth: float, tilt_deg: float = 0.0) -> Iterator[Hypothesis]:
-    """Unit-rate hypotheses: ``rate`` rad per frame for orbits, ``rate × depth`` per frame for translations
-    (the same image motion at the centre's depth). With ``tilt_deg`` each orbit also with its axis tilted
-    by ± that towards the optical axis: an orbit about an axis seen at an elevation (the orbit preset's
-    20°) turns the camera about its x or y axis and rolls it at once."""
-    centre = torch.tensor([0.0, 0.0, depth], dtype=torch.float64)
+def directions(
+    rate: float, depth: float, tilt_deg: float = 0.0, orbit_depth: float | None = None
+) -> Iterator[Hypothesis]:
+    """Unit-rate hypotheses: ``rate`` rad per frame for orbits of the point ``(0, 0, orbit_depth)``
+    (default ``depth``), ``rate × depth`` per frame for translations (the same image motion at the
+    centre's depth). With ``tilt_deg`` each orbit also with its axis tilted by ± that towards the optical
+    axis: an orbit about an axis seen at an elevation (the orbit preset's 20°) turns the camera about its
+    x or y axis and rolls it at once."""
+    centre = torch.tensor([0.0, 0.0, depth if orbit_depth is None else orbit_depth], dtype=torch.float64)
     yield Hypothesis("still", torch.zeros(6, dtype=torch.float64), "still")
     tilts = [0.0] + ([tilt_deg, -tilt_deg] if tilt_deg else [])
     for axis, name in ((0, "x"), (1, "y")):
@@ -287,7 +291,7 @@ def search_motion(state: SlamState, reporter: StageReporter | None = None) -> Se
     # sized over the ladder, before they are compared with each other and with no motion: at twice its
     # true rate the true direction can lose to wrong ones (docking_good's approach to every orbit, while
     # at its own rate it beats them all).
-    still, *moves = directions(cfg.search_rate, depth, cfg.search_tilt)
+    still, *moves = directions(cfg.search_rate, depth, cfg.search_tilt, cfg.search_orbit_depth or depth)
     moves = [h for h in moves if cfg.search_families in ("all", h.family)]
     trial(still)
     sized = [min((h, h.scaled(0.5)), key=trial) if cfg.search_half_rate else h for h in moves]
