@@ -75,7 +75,7 @@ def build_blocks(ev: RunEvaluation, figures: dict[str, Path]) -> list[Block]:
             [[a, f"{v:.3f}°"] for a, v in zip(("Yaw", "Pitch", "Roll"), tr.ypr_rmse_deg, strict=True)]
             + [["Angle (eq. 17)", f"{summ['rot_err_rmse_deg']:.3f}°"]]
             + [["Drift @ end", f"{tr.drift_deg:.3f}°"]]
-            + [["Gaze (under the Sim(3))", f"{summ['gaze_err_rmse_deg']:.3f}°"]],
+            + [["Gaze (under the Sim(3))", fmt_num(summ["gaze_err_rmse_deg"], ".3f", "°")]],
         ),
         ("h2", "Relative pose error (Sim(3)-aligned)"),
         Table(
