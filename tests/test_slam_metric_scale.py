@@ -268,6 +268,29 @@ def test_a_run_applies_the_first_surface_it_read_before_its_final_ba(synth, tmp_
     assert checkpoint.load(run.checkpoint_path)["surface_scale"]["scale"] == seen.read_at_final.scale
 
 
+def test_a_run_told_to_read_the_surface_at_the_end_applies_the_finished_map(synth, tmp_path):
+    _, scene = synth
+    state, ranges = state_in_map_units(
+        synth, "scale.source=range", "scale.surface_read=end", "global_ba.num_opti_steps_final=3"
+    )
+    state = dataclasses.replace(
+        state, data=dataclasses.replace(state.data, ranges=(scene.frames_us, ranges)),
+        position=Position(initialized=True, next_chunk=state.data.n_chunks),
+    )  # fmt: skip
+    seen = SeeFinalBA()
+    run = RunDir.create(tmp_path, "synth", state.cfg)
+    run_slam(state, run, seen)
+    assert seen.read_at_final is None
+    # The checkpoint keeps map units: the finished map read there is the scale the run applied.
+    snap = checkpoint.load(run.checkpoint_path)
+    assert snap["surface_scale"] is None
+    finished = checkpoint.restore(snap, state.cfg, state.data)
+    expected = range_scale(finished, *state.data.ranges, state.cfg.scale.min_alpha)
+    assert state.metric["metric_scale_source"] == "range, first surface"
+    assert state.metric["metric_scale"] == pytest.approx(expected.scale, rel=1e-12)
+    assert expected.scale == pytest.approx(TRUE_SCALE, rel=0.02)
+
+
 def flat_gaussian(depth: float, opacity: float, lateral: float = 0.0) -> dict[str, list]:
     """A wide, thin Gaussian facing the camera at ``depth`` on the optical axis (shifted ``lateral`` in x)."""
     logit = float(np.log(opacity / (1 - opacity)))

@@ -202,6 +202,7 @@ class ScaleConfig:
     range_weight: float
     rate_weight: float
     closing_min_explained: float
+    surface_read: Literal["before_final_ba", "end"]
 
 
 @dataclass(frozen=True)

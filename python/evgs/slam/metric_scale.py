@@ -21,10 +21,12 @@ render unchanged. So a run ends with one similarity that makes its outputs metri
     (:func:`first_surface`) is the same distance in map units. ``s`` = the median of their ratios over
     the samples whose ray the map covers (opacity ≥ ``scale.min_alpha``), robust to samples that hit a
     part of the target the map lacks. Not the rendered expected depth: a surface the map holds
-    half-transparent mixes what lies behind it into that (4–8 % deeper on docking_good, §26). Read
-    before the final global BA (:func:`read_surface_scale`), which keeps the run's scale to 0.06 % but
-    refits the map to windows from the whole run and moves its surface against the cameras: on the
-    orbit the read after it is 5.0 % off, before it 3.1 % (3 seeds, docs/ablations.md §65).
+    half-transparent mixes what lies behind it into that (4–8 % deeper on docking_good, §26). Where
+    ``scale.surface_read`` says, before the final global BA (:func:`read_surface_scale`) or at the end.
+    That BA keeps the run's scale to 0.06 % but refits the map to windows from the whole run: from an
+    initialization with free knots it moves the surface against the cameras (orbit, 3 seeds: read after
+    it 5.0 % off, before it 3.1 %, docs/ablations.md §65); with the knots held on the search's orbit it
+    brings the surface nearer the truth (2.5 % before, 1.1 % after, §72).
 - ``target_size``: the map's largest extent (2nd–98th percentile of the opaque Gaussians' centres along
   their principal axes) is ``scale.target_size`` metres.
 """
