@@ -12,7 +12,7 @@ import torch
 pytest.importorskip("evgs.render")
 
 from evgs.config import ConfigError, load_config  # noqa: E402
-from evgs.slam.branches import branch_score, run_branches  # noqa: E402
+from evgs.slam.branches import branch_hypotheses, branch_score, run_branches  # noqa: E402
 from evgs.slam.lie import se3_inverse, se3_log  # noqa: E402
 from evgs.slam.metric_scale import first_surface  # noqa: E402
 from evgs.slam.motion_search import Hypothesis  # noqa: E402
@@ -119,6 +119,25 @@ def test_the_initialization_holds_the_knots_on_the_searched_motion_when_asked(sy
     with torch.no_grad():
         assert torch.equal(s.traj.knots(), knots) != train_knots
         assert not torch.equal(s.gaussians["means"], means)
+
+
+def test_the_branches_take_the_best_of_each_direction_when_asked():
+    """``init.branch_directions``: a motion at another rate (the search's ladder, also after the meter's
+    advance) is the same direction and gives no branch of its own; veers and polls are other directions."""
+    orbit = Hypothesis("orbit +y", torch.tensor([0.03, 0, 0, 0, 0.01, 0], dtype=torch.float64), "orbit")
+    mirror = Hypothesis("orbit -y", -orbit.twist, "orbit")
+    ranked = [
+        orbit.advancing(0.01).scaled(0.5),
+        orbit.scaled(2.0).advancing(0.01),
+        mirror.advancing(0.01),
+        mirror.advancing(0.01).scaled(0.5),
+        Hypothesis("orbit +y veer a+20°", orbit.twist, "orbit"),
+    ]
+    assert ranked[0].direction == ranked[1].direction == "orbit +y (meter advance 0.01)"
+    assert branch_hypotheses(ranked, 3, False) == ranked[:3]
+    assert branch_hypotheses(ranked, 3, True) == [ranked[0], ranked[2], ranked[4]]
+    assert branch_hypotheses(ranked, 2, True) == [ranked[0], ranked[2]]
+    assert branch_hypotheses(ranked[:2], 3, True) == ranked[:1]
 
 
 def test_held_init_knots_need_the_motion_search():

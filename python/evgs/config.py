@@ -76,6 +76,7 @@ class InitConfig:
     branches: int
     branch_frames: int
     branch_score: Literal["events", "range"]
+    branch_directions: bool
 
 
 @dataclass(frozen=True)

@@ -59,6 +59,17 @@ def branch_score(state: SlamState, n: int) -> float:
     return loss + float(range_penalty(state, span, unit, cfg.scale.range_weight, cfg.scale.rate_weight))
 
 
+def branch_hypotheses(ranked: list[Hypothesis], n: int, directions: bool) -> list[Hypothesis]:
+    """The first ``n`` of ``ranked`` (best first); with ``directions`` the first of each direction
+    (:attr:`Hypothesis.direction`): the search's sizing picks the rate, the branches the direction."""
+    if not directions:
+        return ranked[:n]
+    firsts: dict[str, Hypothesis] = {}
+    for h in ranked:
+        firsts.setdefault(h.direction, h)
+    return list(firsts.values())[:n]
+
+
 def run_branches(
     state: SlamState,
     hyps: list[Hypothesis],

@@ -86,6 +86,11 @@ class Hypothesis:
         k = torch.arange(n, dtype=torch.float64)[:, None]
         return se3_exp(k * self.twist[None])
 
+    @property
+    def direction(self) -> str:
+        """The name without its rate factors: the same motion at another rate shares it."""
+        return re.sub(r" ×[^ ]+", "", self.name)
+
     def scaled(self, factor: float) -> Hypothesis:
         return Hypothesis(f"{self.name} ×{factor:.3g}", self.twist * factor, self.family)
 

@@ -24,7 +24,7 @@ from torch import Tensor
 from evgs.config import Config, GaussiansConfig
 from evgs.eval.plots import plot_range_agreement
 from evgs.slam import checkpoint
-from evgs.slam.branches import run_branches
+from evgs.slam.branches import branch_hypotheses, run_branches
 from evgs.slam.gaussians import Gaussians
 from evgs.slam.guards import BrightnessAnchor
 from evgs.slam.metric_scale import apply_scale, estimate_scale, range_agreement, read_surface_scale
@@ -177,7 +177,7 @@ def start(state: SlamState, note: Callable[[StageRecord], None], reporter: Stage
     if cfg.init.motion_search:
         found, record = search(state, reporter)
         note(record)
-        hyps = found.ranked[: cfg.init.branches]
+        hyps = branch_hypotheses(found.ranked, cfg.init.branches, cfg.init.branch_directions)
     if len(hyps) > 1:
         adopt(state, run_branches(state, hyps, note, reporter))
         return
