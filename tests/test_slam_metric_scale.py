@@ -250,10 +250,12 @@ class SeeFinalBA:
         pass
 
 
-def test_a_run_applies_the_first_surface_it_read_before_its_final_ba(synth, tmp_path):
+def finish_a_run(synth, tmp_path, *overrides: str) -> tuple[SlamState, RunDir, SeeFinalBA]:
+    """A tracked run's last steps (the first-surface read, the smoother, a 3-step final BA, the scale),
+    the range meter on an orbit of the scene."""
     _, scene = synth
     state, ranges = state_in_map_units(
-        synth, "scale.source=range", "global_ba.num_opti_steps_final=3", "output.diagnostics_every=100"
+        synth, "scale.source=range", "global_ba.num_opti_steps_final=3", *overrides
     )
     state = dataclasses.replace(
         state, data=dataclasses.replace(state.data, ranges=(scene.frames_us, ranges)),
@@ -262,6 +264,11 @@ def test_a_run_applies_the_first_surface_it_read_before_its_final_ba(synth, tmp_
     seen = SeeFinalBA()
     run = RunDir.create(tmp_path, "synth", state.cfg)
     run_slam(state, run, seen)
+    return state, run, seen
+
+
+def test_a_run_applies_the_first_surface_it_read_before_its_final_ba(synth, tmp_path):
+    state, run, seen = finish_a_run(synth, tmp_path, "output.diagnostics_every=100")
     assert seen.read_at_final is not None and seen.read_at_final.scale == pytest.approx(TRUE_SCALE, rel=1e-4)
     assert state.metric["metric_scale"] == seen.read_at_final.scale
     assert state.metric["metric_scale_source"].endswith("read before the final BA")
@@ -269,17 +276,7 @@ def test_a_run_applies_the_first_surface_it_read_before_its_final_ba(synth, tmp_
 
 
 def test_a_run_told_to_read_the_surface_at_the_end_applies_the_finished_map(synth, tmp_path):
-    _, scene = synth
-    state, ranges = state_in_map_units(
-        synth, "scale.source=range", "scale.surface_read=end", "global_ba.num_opti_steps_final=3"
-    )
-    state = dataclasses.replace(
-        state, data=dataclasses.replace(state.data, ranges=(scene.frames_us, ranges)),
-        position=Position(initialized=True, next_chunk=state.data.n_chunks),
-    )  # fmt: skip
-    seen = SeeFinalBA()
-    run = RunDir.create(tmp_path, "synth", state.cfg)
-    run_slam(state, run, seen)
+    state, run, seen = finish_a_run(synth, tmp_path, "scale.surface_read=end")
     assert seen.read_at_final is None
     # The checkpoint keeps map units: the finished map read there is the scale the run applied.
     snap = checkpoint.load(run.checkpoint_path)
