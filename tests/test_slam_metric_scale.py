@@ -223,6 +223,9 @@ def test_the_first_surface_read_before_the_final_ba_is_the_one_applied(synth):
     assert estimate_scale(orbit, orbit.cfg.scale) is before
     now = estimate_scale(dataclasses.replace(orbit, surface_scale=None), orbit.cfg.scale)
     assert now.source == "range, first surface" and abs(now.scale / TRUE_SCALE - 1) > 0.02
+    # Told to read at the end, a run ignores a read its state carries (a checkpoint from another config).
+    at_end = dataclasses.replace(orbit.cfg.scale, surface_read="end")
+    assert estimate_scale(orbit, at_end).scale == now.scale
     # A finished run's checkpoint keeps the read; one written before the key existed has none.
     snap = checkpoint.snapshot(orbit)
     assert checkpoint.restore(snap, orbit.cfg, orbit.data).surface_scale == before

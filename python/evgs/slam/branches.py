@@ -12,6 +12,11 @@ it at the wrong depth as its ray sweeps the target, and on every seed tried the 
 range to first surface wanders least (docs/ablations.md §35, §47). On swirl_low none of the three best
 motions turns enough, and without a meter there is nothing but the events; so it is off by default.
 
+With ``init.branch_directions`` they are the search's best motion of each direction instead: with the
+knots held through the initialization (``init.train_knots = false``) the map takes on the relief of
+whichever rate it is given, and the range score kept swirl_good's half rate on one seed of three, while
+the search's own sizing had the full rate first on all three (docs/ablations.md §72).
+
 The branches start from the same seeded map and random state, so they differ by their hypothesis alone,
 and they are compared on the same windows (:func:`evgs.slam.optimize.fixed_window_loss`) or samples. The
 kept branch goes on as if it had been the only one; the others' time is recorded in a ``branch`` stage.

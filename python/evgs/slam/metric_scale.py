@@ -244,8 +244,8 @@ def read_surface_scale(state: SlamState) -> ScaleEstimate | None:
 
 def estimate_scale(state: SlamState, cfg: ScaleConfig) -> ScaleEstimate | None:
     """The scale as ``cfg.source`` says. With ``range``, the closing rate when the run's advances explain
-    the meter, else the first surface: ``state.surface_scale`` (read before the final BA) if there is
-    one, else read now."""
+    the meter, else the first surface: with ``cfg.surface_read = "before_final_ba"``
+    ``state.surface_scale`` (read before the final BA) if there is one, else read now."""
     if cfg.source == "none":
         return None
     if cfg.source == "target_size":
@@ -259,7 +259,7 @@ def estimate_scale(state: SlamState, cfg: ScaleConfig) -> ScaleEstimate | None:
         jumps = f", {fit.jumps} jumps left out" if fit.jumps else ""
         source = f"range, closing rate ({fit.explained:.1%} explained{jumps})"
         return ScaleEstimate(fit.scale, fit.samples, source)
-    if state.surface_scale is not None:
+    if cfg.surface_read == "before_final_ba" and state.surface_scale is not None:
         return state.surface_scale
     return range_scale(state, t_us, ranges, cfg.min_alpha)
 
