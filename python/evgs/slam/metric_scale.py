@@ -230,13 +230,14 @@ def map_extent(gaussians: Gaussians, min_opacity: float = 0.5) -> float:
 
 
 def read_surface_scale(state: SlamState) -> ScaleEstimate | None:
-    """:func:`range_scale` of the state as it stands, for a run with ``scale.source = "range"`` and a
-    range meter; None otherwise, or when the map covers none of the samples (the final read then
-    reports why)."""
-    if state.cfg.scale.source != "range" or state.data.ranges is None:
+    """:func:`range_scale` of the state as it stands, for a run with ``scale.source = "range"``,
+    ``scale.surface_read = "before_final_ba"`` and a range meter; None otherwise, or when the map covers
+    none of the samples (the final read then reports why)."""
+    scale = state.cfg.scale
+    if scale.source != "range" or scale.surface_read != "before_final_ba" or state.data.ranges is None:
         return None
     try:
-        est = range_scale(state, *state.data.ranges, state.cfg.scale.min_alpha)
+        est = range_scale(state, *state.data.ranges, scale.min_alpha)
     except ValueError:
         return None
     return replace(est, source=f"{est.source}, read before the final BA")

@@ -3,7 +3,7 @@ then per chunk tracking, local BA every ``mapping.every`` frames and global BA e
 ``global_ba.every`` frames, and a final global BA. With ``trajectory.smoothing_time`` the tracked
 positions are smoothed just before it (:mod:`evgs.slam.smoothing`), so that it refits the map to the
 smoothed path. With a range meter, the map's first-surface scale is read before both
-(:func:`~evgs.slam.metric_scale.read_surface_scale`), unless ``scale.surface_read = "end"``.
+(:func:`~evgs.slam.metric_scale.read_surface_scale`; none with ``scale.surface_read = "end"``).
 
 The state is snapshotted at every frame boundary and written to ``checkpoints/`` every
 ``output.checkpoint_every`` frames; Ctrl-C (KeyboardInterrupt) writes the last boundary's snapshot, so
@@ -228,8 +228,7 @@ def run_slam(
             step_chunk(state, note, reporter)
             boundary()
         if not state.position.finished:
-            if cfg.scale.surface_read == "before_final_ba":  # and the smoother: the map fits these cameras
-                state.surface_scale = read_surface_scale(state)
+            state.surface_scale = read_surface_scale(state)  # before the smoother: the map fits these cameras
             tau = cfg.trajectory.smoothing_time
             if tau > 0:
                 moved = smooth_trajectory(state.traj, tau)
