@@ -121,6 +121,23 @@ def test_the_initialization_holds_the_knots_on_the_searched_motion_when_asked(sy
         assert not torch.equal(s.gaussians["means"], means)
 
 
+def test_the_initialization_holds_the_knots_rotations_when_asked(synth):
+    """``init.train_knot_rotation = false``: the initialization moves the knots' positions and keeps their
+    rotations on the motion it starts from, to rounding (the knots are re-projected onto SE(3))."""
+    s = search_state(synth[0], "init.num_opti_steps_for_init=20", "init.train_knot_rotation=false")
+    m = s.num_init_chunks()
+    start_from(s, truth(synth, m))
+    with torch.no_grad():
+        knots = s.traj.knots().clone()
+    initialize(s)
+    with torch.no_grad():
+        after = s.traj.knots()
+        torch.testing.assert_close(after[:, :3, :3], knots[:, :3, :3], rtol=0, atol=1e-12)
+        moved = (after[1:, :3, 3] - knots[1:, :3, 3]).norm(dim=-1)
+        assert bool((moved > 1e-6).all())
+        torch.testing.assert_close(after[0], knots[0], rtol=0, atol=0)  # knot 0 is the gauge
+
+
 def test_the_branches_take_the_best_of_each_direction_when_asked():
     """``init.branch_directions``: a motion at another rate (the search's ladder, also after the meter's
     advance) is the same direction and gives no branch of its own; veers and polls are other directions."""
@@ -143,3 +160,5 @@ def test_the_branches_take_the_best_of_each_direction_when_asked():
 def test_held_init_knots_need_the_motion_search():
     with pytest.raises(ConfigError, match="train_knots = false needs init.motion_search"):
         load_config(overrides=["init.train_knots=false"])
+    with pytest.raises(ConfigError, match="train_knot_rotation = false needs init.motion_search"):
+        load_config(overrides=["init.train_knot_rotation=false"])

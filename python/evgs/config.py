@@ -56,6 +56,7 @@ class InitConfig:
     num_opti_steps_for_init: int
     lr_boost: float
     train_knots: bool
+    train_knot_rotation: bool
     motion_search: bool
     search_steps: int
     search_rate: float
@@ -339,6 +340,11 @@ def _check_ranges(cfg: Config, source: str) -> None:
     if not cfg.init.train_knots and not cfg.init.motion_search:
         problems.append(
             "init.train_knots = false needs init.motion_search = true (the knots stay on its best motion)"
+        )
+    if not cfg.init.train_knot_rotation and not cfg.init.motion_search:
+        problems.append(
+            "init.train_knot_rotation = false needs init.motion_search = true (the knots keep its best "
+            "motion's turn)"
         )
     if cfg.init.branches < 1 or cfg.init.branch_frames < 0:
         problems.append("init.branches must be >= 1 (1 = off) and init.branch_frames >= 0")

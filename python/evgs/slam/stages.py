@@ -61,7 +61,7 @@ def initialize(state: SlamState, reporter: StageReporter | None = None) -> Stage
         "init", _seq_frame(state, m), cfg.init.num_opti_steps_for_init, state.data.span(0, m),
         cfg.data.training_batch_size, stage_seed(cfg.seed, "init", m),
         range(1, m + 1) if cfg.init.train_knots else range(0), range(m + 1),
-        train_gaussians=True, lr_boost=cfg.init.lr_boost,
+        train_gaussians=True, lr_boost=cfg.init.lr_boost, turn_knots=cfg.init.train_knot_rotation,
     )  # fmt: skip
     record = run_stage(state, spec, reporter)
     set_brightness_reference(state)

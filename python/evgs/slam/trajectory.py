@@ -76,6 +76,7 @@ class Trajectory(torch.nn.Module):
         self.register_buffer("t_us", t)
         self.register_buffer("base", base.clone())
         self.register_buffer("trainable", torch.ones(len(t), dtype=torch.bool))
+        self.turns = True  # whether the trainable knots' rotations move too (a stage's setting, not state)
         self.delta = torch.nn.Parameter(torch.zeros(len(t), 6, dtype=torch.float64))
 
     def __len__(self) -> int:
@@ -83,14 +84,19 @@ class Trajectory(torch.nn.Module):
 
     def knots(self) -> Tensor:
         """(K, 4, 4) current knots, differentiable w.r.t. the trainable increments."""
-        delta = torch.where(self.trainable[:, None], self.delta, torch.zeros_like(self.delta))
+        mask = self.trainable[:, None]
+        if not self.turns:
+            mask = mask & torch.tensor([True, True, True, False, False, False])
+        delta = torch.where(mask, self.delta, torch.zeros_like(self.delta))
         return self.base @ se3_exp(delta)
 
-    def set_trainable(self, indices: slice | list[int] | Tensor | None) -> None:
-        """Only these knots (None = all) receive gradients; Python-style negative indices work."""
+    def set_trainable(self, indices: slice | list[int] | Tensor | None, turns: bool = True) -> None:
+        """Only these knots (None = all) receive gradients; Python-style negative indices work. With
+        ``turns`` False they move their positions only: ``δ = (v, 0)`` translates a knot in its own frame
+        and keeps its rotation."""
         mask = torch.zeros(len(self), dtype=torch.bool)
         mask[slice(None) if indices is None else indices] = True
-        self.trainable = mask
+        self.trainable, self.turns = mask, turns
 
     @torch.no_grad()
     def rebase(self) -> None:
