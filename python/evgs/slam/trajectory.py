@@ -55,6 +55,9 @@ def random_knots(n: int, sigma: float, generator: torch.Generator) -> Tensor:
     return se3_exp(xi)
 
 
+TRANSLATION = torch.tensor([True, True, True, False, False, False])  # the (v, ω) increment's position half
+
+
 class Trajectory(torch.nn.Module):
     """Knots ``T_wc`` (camera-to-world) at strictly increasing integer-µs timestamps."""
 
@@ -86,7 +89,7 @@ class Trajectory(torch.nn.Module):
         """(K, 4, 4) current knots, differentiable w.r.t. the trainable increments."""
         mask = self.trainable[:, None]
         if not self.turns:
-            mask = mask & torch.tensor([True, True, True, False, False, False])
+            mask = mask & TRANSLATION
         delta = torch.where(mask, self.delta, torch.zeros_like(self.delta))
         return self.base @ se3_exp(delta)
 
