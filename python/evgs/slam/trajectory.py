@@ -78,8 +78,8 @@ class Trajectory(torch.nn.Module):
         self.method: Interpolation = method
         self.register_buffer("t_us", t)
         self.register_buffer("base", base.clone())
-        self.register_buffer("trainable", torch.ones(len(t), dtype=torch.bool))
-        self.turns = True  # whether the trainable knots' rotations move too (a stage's setting, not state)
+        # (K, 6): which coordinates of each knot's increment ``(v, ω)`` a stage optimises
+        self.register_buffer("trainable", torch.ones(len(t), 6, dtype=torch.bool))
         self.delta = torch.nn.Parameter(torch.zeros(len(t), 6, dtype=torch.float64))
 
     def __len__(self) -> int:
@@ -87,19 +87,16 @@ class Trajectory(torch.nn.Module):
 
     def knots(self) -> Tensor:
         """(K, 4, 4) current knots, differentiable w.r.t. the trainable increments."""
-        mask = self.trainable[:, None]
-        if not self.turns:
-            mask = mask & TRANSLATION
-        delta = torch.where(mask, self.delta, torch.zeros_like(self.delta))
+        delta = torch.where(self.trainable, self.delta, torch.zeros_like(self.delta))
         return self.base @ se3_exp(delta)
 
     def set_trainable(self, indices: slice | list[int] | Tensor | None, turns: bool = True) -> None:
         """Only these knots (None = all) receive gradients; Python-style negative indices work. With
         ``turns`` False they move their positions only: ``δ = (v, 0)`` translates a knot in its own frame
         and keeps its rotation."""
-        mask = torch.zeros(len(self), dtype=torch.bool)
-        mask[slice(None) if indices is None else indices] = True
-        self.trainable, self.turns = mask, turns
+        mask = torch.zeros(len(self), 6, dtype=torch.bool)
+        mask[slice(None) if indices is None else indices] = True if turns else TRANSLATION
+        self.trainable = mask
 
     @torch.no_grad()
     def rebase(self) -> None:
@@ -152,7 +149,7 @@ class Trajectory(torch.nn.Module):
             pose = constant_velocity(knots[-2], knots[-1], ratio)
         self.base = project_se3(torch.cat([knots, pose[None]]), RIGID_TOL)
         self.t_us = torch.cat([self.t_us, torch.tensor([t_new])])
-        self.trainable = torch.cat([self.trainable, torch.tensor([True])])
+        self.trainable = torch.cat([self.trainable, torch.ones(1, 6, dtype=torch.bool)])
         self.delta = torch.nn.Parameter(torch.zeros(len(self.t_us), 6, dtype=torch.float64))
 
     def acceleration_penalty(self, scene_scale: float) -> Tensor:
