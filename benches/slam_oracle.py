@@ -41,9 +41,9 @@ from evgs.config import load_config
 from evgs.data.sequence import Sequence
 from evgs.render import render
 from evgs.slam.lie import se3_exp, se3_inverse, se3_log
-from evgs.slam.loss import event_loss, pointwise_error, predicted_events
+from evgs.slam.loss import pointwise_error, predicted_events
 from evgs.slam.motion_search import EVAL_WINDOWS, fit, search_chunks
-from evgs.slam.optimize import StageSpec, fixed_windows, run_stage
+from evgs.slam.optimize import StageSpec, fixed_windows, run_stage, window_event_score
 from evgs.slam.pipeline import new_state, pin_threads
 from evgs.slam.stages import set_brightness_reference, track
 from evgs.slam.state import SlamState, stage_seed
@@ -104,7 +104,7 @@ def search_refits(state: SlamState, rel: torch.Tensor, rates: list[float]) -> Ta
         trial = fit(state, se3_exp(rate * se3_log(rel[: m + 1])), None)
         losses, ee, pp, ep = [], 0.0, 0.0, 0.0
         for win, gray in fixed_windows(trial, span, seed, EVAL_WINDOWS):  # as fixed_window_loss scores
-            losses.append(float(event_loss(win.frames, gray[:1], gray[1:], cfg.loss).total))
+            losses.append(window_event_score(win.frames, gray, cfg.loss))
             e, p = win.frames.double(), predicted_events(gray[:1], gray[1:], cfg.loss).double()
             ee, pp, ep = ee + float((e * e).sum()), pp + float((p * p).sum()), ep + float((e * p).sum())
         score = float(np.mean(losses))

@@ -415,3 +415,30 @@ def test_the_range_meter_adds_to_the_score_and_leaves_the_refit_alone(synth):
     added = scores[10.0] - scores[0.0]
     assert added > 1e-4, scores
     assert scores[20.0] - scores[0.0] == pytest.approx(2 * added, rel=1e-3)
+
+
+def test_states_are_compared_on_the_event_term_alone(synth):
+    """The search's and the branches' score is eq. 8 without its SSIM term, ``(1 − λ)·L_event``: that term
+    compares a window's two renders with each other, so it would favour whichever motion changes the view
+    least. On a moving trajectory, whose renders differ (SSIM term > 0), the score is that of the event
+    term alone, whatever λ."""
+    from evgs.slam.loss import event_loss
+    from evgs.slam.optimize import fixed_window_loss, fixed_windows
+
+    _, scene = synth
+    state = synth_state(synth)
+    m = state.num_init_chunks()
+    P = torch.as_tensor(scene.poses)
+    start_from(state, Hypothesis("truth", se3_log(se3_inverse(P[0]) @ P[m]) / m))
+    span, seed = state.data.span(0, m), 7
+    terms = [
+        event_loss(win.frames, gray[:1], gray[1:], state.cfg.loss)
+        for win, gray in fixed_windows(state, span, seed, 4)
+    ]
+    assert min(float(t.ssim) for t in terms) > 1e-4  # the renders move: the SSIM term would count
+    lam = state.cfg.loss.lambda_ssim
+    assert lam > 0
+    event = float(np.mean([float(t.event) for t in terms]))
+    assert fixed_window_loss(state, span, seed, 4) == pytest.approx((1 - lam) * event, rel=1e-6)
+    state.cfg = dataclasses.replace(state.cfg, loss=dataclasses.replace(state.cfg.loss, lambda_ssim=0.5))
+    assert fixed_window_loss(state, span, seed, 4) == pytest.approx(0.5 * event, rel=1e-6)

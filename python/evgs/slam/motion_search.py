@@ -7,7 +7,8 @@ true one (docs/ablations.md §3, §7). A map refitted to *fixed* knots separates
 hypothesis is scored by such a refit: the seeded map trained for ``init.search_steps`` iterations with
 the knots frozen on the first ``init.search_frames`` chunks (more than the init's: over a longer
 baseline an orbit and its mirror image with the relief reversed no longer explain the events equally
-well), then its event loss on fixed windows of those chunks — and, with ``init.search_holdout`` > 0,
+well), then its event term on fixed windows of those chunks (eq. 8 without the SSIM term, which favours
+small motions: :func:`evgs.slam.optimize.window_event_score`) — and, with ``init.search_holdout`` > 0,
 of as many chunks after them, the velocity carried on. On the fitted chunks alone a wrong motion with a
 map bent to it can do as well as the truth, and the search over-estimates the motion 1.5–2×; on the
 chunks ahead alone, too little motion does best; the mean of both, with the basis at two rates, finds
