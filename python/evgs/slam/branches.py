@@ -53,9 +53,9 @@ def meter(state: SlamState) -> tuple[np.ndarray, np.ndarray]:
 def branch_score(state: SlamState, n: int) -> float:
     """Lower is better. ``init.branch_score = "events"``: the event term of ``state`` on fixed windows of
     chunks ``0..n-1`` (:func:`evgs.slam.optimize.window_event_score`), with the range meter's terms as
-    every stage has them. ``"range"``: the spread of the
-    meter against the map's first surface over the samples the branch has reached
-    (:meth:`RangeAgreement.spread`; infinite where the map covers fewer than two of their rays)."""
+    every stage has them. ``"range"``: the spread of the meter against the map's first surface over the
+    samples the branch has reached (:meth:`RangeAgreement.spread`; infinite where the map covers fewer
+    than two of their rays)."""
     cfg, span = state.cfg, state.data.span(0, n)
     if cfg.init.branch_score == "range":
         spread = range_agreement(state, *meter(state), cfg.scale.min_alpha).spread()
