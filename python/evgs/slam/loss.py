@@ -169,15 +169,13 @@ class LossTerms:
     ssim: Tensor  # the SSIM term ``1 − SSIM``, averaged over the batch
 
 
-def event_loss(
+def event_term(
     events: Tensor, start: Tensor, end: Tensor, cfg: LossConfig, mask: Tensor | None = None
-) -> LossTerms:
-    """Eq. 8: ``(1−λ)·L_event + λ·(1 − SSIM(start, end))``.
-
-    ``events`` is the measured event frame ``E`` (B, H, W); ``start``/``end`` the renders. ``mask``
-    (B, H, W) bool selects the pixels of the event term (None = all); ``cfg.event_mask_threshold ≥ 0``
-    further restricts it to pixels with events. A batch with no valid pixel gives a zero event term.
-    """
+) -> Tensor:
+    """``L_event`` of eq. 8: the pointwise error between the measured event frame ``E`` (B, H, W) and the
+    one the renders ``start``/``end`` predict. ``mask`` (B, H, W) bool selects the pixels (None = all);
+    ``cfg.event_mask_threshold ≥ 0`` further restricts them to pixels with events. A batch with no valid
+    pixel gives 0."""
     if not (events.shape == start.shape == end.shape) or events.ndim != 3:
         raise ValueError(
             f"event_loss: events/start/end must be (B, H, W) of one shape, got "
@@ -189,10 +187,17 @@ def event_loss(
         m = event_mask(events, cfg.event_mask_threshold)
         mask = m if mask is None else mask & m
     if mask is None:
-        l_event = err.mean()
-    else:
-        w = mask.to(err.dtype)
-        l_event = (err * w).sum() / w.sum().clamp(min=1.0)
+        return err.mean()
+    w = mask.to(err.dtype)
+    return (err * w).sum() / w.sum().clamp(min=1.0)
+
+
+def event_loss(
+    events: Tensor, start: Tensor, end: Tensor, cfg: LossConfig, mask: Tensor | None = None
+) -> LossTerms:
+    """Eq. 8: ``(1−λ)·L_event + λ·(1 − SSIM(start, end))``, the event term by :func:`event_term` (the
+    same arguments)."""
+    l_event = event_term(events, start, end, cfg, mask)
     l_ssim = (1 - ssim(start, end, cfg.ssim_window, cfg.ssim_sigma)).mean()
     lam = cfg.lambda_ssim
     return LossTerms((1 - lam) * l_event + lam * l_ssim, l_event, l_ssim)

@@ -27,7 +27,7 @@ from evgs.data.sequence import Camera
 from evgs.render import RenderResult, render
 from evgs.slam.gaussians import make_optimizer
 from evgs.slam.guards import blocker_mask, clamp_colors_
-from evgs.slam.loss import LossTerms, depth_variation, event_loss, total_variation, valid_mask
+from evgs.slam.loss import LossTerms, depth_variation, event_loss, event_term, total_variation, valid_mask
 from evgs.slam.state import SlamState, StageRecord
 from evgs.slam.strategy import DefaultStrategy, reset_opacity
 from evgs.slam.windows import Windows, scaled_camera
@@ -121,7 +121,7 @@ def window_event_score(frames: Tensor, gray: Tensor, cfg: LossConfig) -> float:
     it rewards the one whose renders change least, the smaller. With it the motion search ranked
     swirl_good's turn at half its rate first (seed 2, by 1 %); on the event term the full rate wins on
     all three seeds (docs/ablations.md §75)."""
-    return (1 - cfg.lambda_ssim) * float(event_loss(frames, gray[:1], gray[1:], cfg).event)
+    return (1 - cfg.lambda_ssim) * float(event_term(frames, gray[:1], gray[1:], cfg))
 
 
 def fixed_window_loss(state: SlamState, span: tuple[int, int], seed: int, windows: int) -> float:
