@@ -123,6 +123,50 @@ def test_the_best_translation_is_sized_even_when_an_orbit_beats_it_at_the_nomina
     assert len(found.tried) == 11 + 8
 
 
+def test_the_finalists_are_ranked_by_their_longer_refits_ahead_of_the_rest(synth, monkeypatch):
+    """``init.search_finalists``: short refits rank the orbit's double rate first, the longer ones the
+    orbit itself (``make run``'s hubble, docs/ablations.md §74). The k best of the short refits are
+    refitted longer and ranked by that, ahead of the rest; the iterations count both."""
+    basis = {h.name: h.twist for h in directions(RATE, DEPTH)}
+    unit = RATE * torch.tensor([DEPTH] * 3 + [1.0] * 3, dtype=torch.float64)
+    calls = []
+
+    def fake_score(state, hyp, reporter, steps=None):
+        calls.append(steps)
+        truth = basis["orbit -y"] * (1.0 if steps == 120 else 2.0)
+        return float(((hyp.twist - truth) / unit).square().sum()) + (0.0 if steps == 120 else 1.0)
+
+    monkeypatch.setattr(motion_search, "score", fake_score)
+    sets = [f"gaussians.init_depth={DEPTH}", f"init.search_rate={RATE}", "init.search_polls=0"]
+    sets.append("init.search_steps=60")
+    plain = search_motion(synth_state(synth, *sets))
+    assert plain.best.name == "orbit -y ×2" and plain.finals == []
+    calls.clear()
+    found = search_motion(synth_state(synth, *sets, "init.search_finalists=3", "init.search_final_steps=120"))
+    assert calls.count(120) == 3 and len(calls) == len(found.tried) + 3
+    assert [h for h, _ in plain.tried] == [h for h, _ in found.tried]  # the short refits as before
+    short = sorted(plain.tried, key=lambda hs: hs[1])[:3]
+    assert {h for h, _ in found.finals} == {h for h, _ in short}
+    assert [s for _, s in found.finals] == sorted(s for _, s in found.finals)
+    assert found.best.name == "orbit -y" and found.score == found.finals[0][1] == 0.0
+    assert [h.name for h in found.ranked[:3]] == [h for h, _ in found.finals]
+    assert [h.name for h in found.ranked[3:]] == [h for h, _ in sorted(plain.tried, key=lambda hs: hs[1])[3:]]
+    assert found.steps == 60 * len(found.tried) + 120 * 3
+
+
+def test_a_finalist_scores_as_a_search_refitting_that_long_would(synth):
+    """A finalist's longer refit is the refit a search with ``init.search_steps`` at that length runs:
+    the same windows and random numbers, so the same score to the last digit."""
+    _, scene = synth
+    P = torch.as_tensor(scene.poses)
+    short = synth_state(synth, "init.search_steps=10")
+    m = short.num_init_chunks()
+    truth = Hypothesis("truth", se3_log(se3_inverse(P[0]) @ P[m]) / m)
+    longer = score(short, truth, None, 30)
+    assert longer == score(synth_state(synth, "init.search_steps=30"), truth, None)
+    assert longer != score(short, truth, None)
+
+
 def test_veered_translations_keep_speed_and_rotation_and_turn_by_the_angle():
     """Four moves: ± the angle towards each of two axes across the translation, which with the
     translation itself are orthogonal."""

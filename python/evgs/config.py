@@ -59,6 +59,8 @@ class InitConfig:
     train_knot_rotation: bool
     motion_search: bool
     search_steps: int
+    search_finalists: int
+    search_final_steps: int
     search_rate: float
     search_range: float
     search_polls: int
@@ -322,6 +324,8 @@ def _check_ranges(cfg: Config, source: str) -> None:
         problems.append("scale.source = 'target_size' needs scale.target_size > 0 (metres)")
     if cfg.init.motion_search and (
         cfg.init.search_steps < 1
+        or cfg.init.search_finalists < 0
+        or cfg.init.search_final_steps < 1
         or cfg.init.search_rate <= 0
         or cfg.init.search_range <= 1
         or cfg.init.search_holdout < 0
@@ -332,7 +336,8 @@ def _check_ranges(cfg: Config, source: str) -> None:
         or cfg.init.search_orbit_depth < 0
     ):
         problems.append(
-            "init.motion_search needs search_steps >= 1, search_rate > 0, search_range > 1, "
+            "init.motion_search needs search_steps >= 1, search_finalists >= 0 (0 = off), "
+            "search_final_steps >= 1, search_rate > 0, search_range > 1, "
             "search_holdout >= 0, search_sized >= 1, 1 <= search_starts <= 2 × search_sized (the sized "
             "orbits and translations), 0 <= search_tilt < 90, 0 <= search_veer < 90 and "
             "search_orbit_depth >= 0"

@@ -34,6 +34,12 @@ axis as fast as the range meter closes over the searched chunks
 directly, and the basis orbits have none (docs/ablations.md §41). The joint initialization starts from
 the winner.
 
+With ``init.search_finalists`` = k > 0 the k best are then refitted for ``init.search_final_steps``
+iterations and ranked by that score, ahead of the rest. Which of an orbit, its mirror and its double
+rate explains the events best can turn between 60 and 120 refit steps (docs/ablations.md §74); the
+finalists' longer refits are the very ones a search refitting everything that long would run, so they
+rank the same for a fraction of its cost, as long as its winner is among the short refits' k best.
+
 With ``init.search_polls`` > 0 a compass search in the same basis plus roll then adds what the family
 leaves out (roll, mixtures, an orbit centre off ``init_depth``), from the best sized direction or, with
 ``init.search_starts``, from several (two basis orbits can tie while only one leads to the truth once
@@ -158,11 +164,13 @@ def search_chunks(state: SlamState) -> tuple[int, int]:
     return m, min(cfg.search_holdout, n - m)
 
 
-def fit(state: SlamState, knots: Tensor, reporter: StageReporter | None) -> SlamState:
-    """A copy of ``state`` whose seeded map was optimised for ``init.search_steps`` iterations on the
-    frozen ``knots`` (a hypothesis' first ``init.search_frames`` + 1; or the truth's, in
-    ``benches/slam_oracle.py``); ``state`` itself is left as it was. Every fit draws the same windows
-    and random numbers, so scores differ by the knots alone."""
+def fit(
+    state: SlamState, knots: Tensor, reporter: StageReporter | None, steps: int | None = None
+) -> SlamState:  # fmt: skip
+    """A copy of ``state`` whose seeded map was optimised for ``steps`` iterations (default
+    ``init.search_steps``) on the frozen ``knots`` (a hypothesis' first ``init.search_frames`` + 1; or
+    the truth's, in ``benches/slam_oracle.py``); ``state`` itself is left as it was. Every fit of a
+    given length draws the same windows and random numbers, so scores differ by the knots alone."""
     cfg, data = state.cfg, state.data
     m, _ = search_chunks(state)
     trial = dataclasses.replace(
@@ -173,7 +181,7 @@ def fit(state: SlamState, knots: Tensor, reporter: StageReporter | None) -> Slam
         history=[],
     )
     spec = StageSpec(
-        "search", m, cfg.init.search_steps, data.span(0, m), cfg.data.training_batch_size,
+        "search", m, steps or cfg.init.search_steps, data.span(0, m), cfg.data.training_batch_size,
         stage_seed(cfg.seed, "search", m), [], range(m + 1), train_gaussians=True, lr_boost=cfg.init.lr_boost,
         adaptive=not cfg.init.search_smooth,
     )  # fmt: skip
@@ -196,16 +204,18 @@ def poll_directions(depth: float) -> list[tuple[str, Tensor]]:
     return out
 
 
-def score(state: SlamState, hyp: Hypothesis, reporter: StageReporter | None) -> float:
-    """Event loss of the seeded map refitted to ``hyp``'s frozen knots on fixed windows of the fitted
-    chunks — with ``init.search_holdout``, the mean of that and of the same on the chunks after them,
-    where the constant velocity carries on.
+def score(
+    state: SlamState, hyp: Hypothesis, reporter: StageReporter | None, steps: int | None = None
+) -> float:  # fmt: skip
+    """Event loss of the seeded map refitted ``steps`` iterations (:func:`fit`) to ``hyp``'s frozen knots
+    on fixed windows of the fitted chunks — with ``init.search_holdout``, the mean of that and of the
+    same on the chunks after them, where the constant velocity carries on.
     In the fitted chunks a wrong motion with a map bent to it can explain the events as well as the
     truth, but it does not predict the next ones; ahead, an unmodelled change of speed or a part of the
     target not yet mapped favours too little motion, which the fitted chunks do not."""
     cfg, data = state.cfg, state.data
     m, holdout = search_chunks(state)
-    trial = fit(state, hyp.knots(m + 1), reporter)
+    trial = fit(state, hyp.knots(m + 1), reporter, steps)
     spans = [data.span(0, m)]
     if holdout:  # the fitted knots, carried on over the chunks ahead
         n = m + holdout
@@ -273,9 +283,10 @@ def compass(
 
 @dataclasses.dataclass(frozen=True)
 class SearchResult:
-    ranked: list[Hypothesis]  # every hypothesis scored, the best first
+    ranked: list[Hypothesis]  # every hypothesis scored, the best first (the finalists ahead of the rest)
     score: float  # the best's
     tried: list[tuple[str, float]]  # every (name, score) in order
+    finals: list[tuple[str, float]]  # the finalists' (name, score) after their longer refits, the best first
     steps: int  # map iterations spent on refits
 
     @property
@@ -326,5 +337,13 @@ def search_motion(state: SlamState, reporter: StageReporter | None = None) -> Se
             rate = float(start.twist[3:].norm()) or float(start.twist[:3].norm()) / depth
             compass(trial, start, 0.25 * rate, cfg.search_polls, poll_directions(depth))
     ranked = sorted(trial.tried, key=lambda hs: hs[1])
+    # The finalists refitted longer: their ranking among themselves is the longer refits', and the
+    # rest keep theirs behind them (the two scores are not comparable with each other).
+    k = cfg.search_finalists
+    finals = sorted(
+        ((h, score(state, h, reporter, cfg.search_final_steps)) for h, _ in ranked[:k]), key=lambda hs: hs[1]
+    )
+    ranked = finals + ranked[len(finals) :]
     tried = [(h.name, s) for h, s in trial.tried]
-    return SearchResult([h for h, _ in ranked], ranked[0][1], tried, cfg.search_steps * len(tried))
+    steps = cfg.search_steps * len(tried) + cfg.search_final_steps * len(finals)
+    return SearchResult([h for h, _ in ranked], ranked[0][1], tried, [(h.name, s) for h, s in finals], steps)

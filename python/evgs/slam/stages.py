@@ -42,7 +42,9 @@ def search(state: SlamState, reporter: StageReporter | None = None) -> tuple[Sea
     record = StageRecord(
         "search", _seq_frame(state, state.num_init_chunks()), found.steps, found.score,
         time.perf_counter() - t0, 0, False, len(state.gaussians),
-        note=f"best of {len(found.tried)} motions: {found.best.name}",
+        note=f"best of {len(found.tried)} motions"
+        + (f", {len(found.finals)} refitted longer" if found.finals else "")
+        + f": {found.best.name}",
     )  # fmt: skip
     state.history.append(record)
     return found, record
