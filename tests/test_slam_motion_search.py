@@ -154,6 +154,25 @@ def test_the_finalists_are_ranked_by_their_longer_refits_ahead_of_the_rest(synth
     assert found.steps == 60 * len(found.tried) + 120 * 3
 
 
+def test_the_finalists_refit_under_their_own_relief_prior(synth, monkeypatch):
+    """``init.search_final_depth_tv`` >= 0 is ``loss.depth_tv`` in the finalists' refits alone; the short
+    refits keep the run's, and < 0 leaves the finalists the run's too."""
+    seen = []
+
+    def fake_score(state, hyp, reporter, steps=None):
+        seen.append((steps, state.cfg.loss.depth_tv))
+        return float(hyp.twist.norm())
+
+    monkeypatch.setattr(motion_search, "score", fake_score)
+    sets = ["init.search_polls=0", "init.search_finalists=2", "loss.depth_tv=0.5"]
+    search_motion(synth_state(synth, *sets, "init.search_final_depth_tv=2.0"))
+    assert {tv for steps, tv in seen if steps is None} == {0.5}
+    assert [tv for steps, tv in seen if steps is not None] == [2.0, 2.0]
+    seen.clear()
+    search_motion(synth_state(synth, *sets))
+    assert {tv for _, tv in seen} == {0.5}
+
+
 def test_a_finalist_scores_as_a_search_refitting_that_long_would(synth):
     """A finalist's longer refit is the refit a search with ``init.search_steps`` at that length runs:
     the same windows and random numbers, so the same score to the last digit."""

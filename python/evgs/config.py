@@ -61,6 +61,7 @@ class InitConfig:
     search_steps: int
     search_finalists: int
     search_final_steps: int
+    search_final_depth_tv: float
     search_rate: float
     search_range: float
     search_polls: int

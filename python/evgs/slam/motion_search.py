@@ -39,6 +39,10 @@ iterations and ranked by that score, ahead of the rest. Which of an orbit, its m
 rate explains the events best can turn between 60 and 120 refit steps (docs/ablations.md §74); the
 finalists' longer refits are the very ones a search refitting everything that long would run, so they
 rank the same for a fraction of its cost, as long as its winner is among the short refits' k best.
+``init.search_final_depth_tv`` gives the finalists' refits their own relief prior (``loss.depth_tv``):
+given the steps to settle, it breaks the tie between a turn and a slower one with the relief deepened
+to match (the bas-relief trade), which the dim light's silhouettes leave open; in the short refits it
+bends the ranking towards other axes (docs/ablations.md §43, §78).
 
 With ``init.search_polls`` > 0 a compass search in the same basis plus roll then adds what the family
 leaves out (roll, mixtures, an orbit centre off ``init_depth``), from the best sized direction or, with
@@ -339,9 +343,13 @@ def search_motion(state: SlamState, reporter: StageReporter | None = None) -> Se
     ranked = sorted(trial.tried, key=lambda hs: hs[1])
     # The finalists refitted longer: their ranking among themselves is the longer refits', and the
     # rest keep theirs behind them (the two scores are not comparable with each other).
-    k = cfg.search_finalists
+    k, final_state = cfg.search_finalists, state
+    if cfg.search_final_depth_tv >= 0:
+        loss = dataclasses.replace(state.cfg.loss, depth_tv=cfg.search_final_depth_tv)
+        final_state = dataclasses.replace(state, cfg=dataclasses.replace(state.cfg, loss=loss))
     finals = sorted(
-        ((h, score(state, h, reporter, cfg.search_final_steps)) for h, _ in ranked[:k]), key=lambda hs: hs[1]
+        ((h, score(final_state, h, reporter, cfg.search_final_steps)) for h, _ in ranked[:k]),
+        key=lambda hs: hs[1],
     )
     ranked = finals + ranked[len(finals) :]
     tried = [(h.name, s) for h, s in trial.tried]
