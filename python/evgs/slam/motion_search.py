@@ -184,8 +184,9 @@ def fit(
         generator=torch.Generator().manual_seed(stage_seed(cfg.seed, "search", m)),
         history=[],
     )
+    steps = cfg.init.search_steps if steps is None else steps
     spec = StageSpec(
-        "search", m, steps or cfg.init.search_steps, data.span(0, m), cfg.data.training_batch_size,
+        "search", m, steps, data.span(0, m), cfg.data.training_batch_size,
         stage_seed(cfg.seed, "search", m), [], range(m + 1), train_gaussians=True, lr_boost=cfg.init.lr_boost,
         adaptive=not cfg.init.search_smooth,
     )  # fmt: skip
