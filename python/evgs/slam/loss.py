@@ -178,7 +178,7 @@ def event_term(
     pixel gives 0."""
     if not (events.shape == start.shape == end.shape) or events.ndim != 3:
         raise ValueError(
-            f"event_loss: events/start/end must be (B, H, W) of one shape, got "
+            f"event term: events/start/end must be (B, H, W) of one shape, got "
             f"{tuple(events.shape)}, {tuple(start.shape)}, {tuple(end.shape)}"
         )
     diff = events - predicted_events(start, end, cfg)
