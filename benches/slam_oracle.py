@@ -47,7 +47,7 @@ from evgs.slam.optimize import StageSpec, fixed_windows, run_stage, window_event
 from evgs.slam.pipeline import new_state, pin_threads
 from evgs.slam.stages import set_brightness_reference, track
 from evgs.slam.state import SlamState, stage_seed
-from evgs.slam.trajectory import Trajectory
+from evgs.slam.trajectory import Trajectory, scaled_motion
 from evgs.slam.windows import EventData
 from rich.console import Console
 from rich.table import Table
@@ -101,7 +101,7 @@ def search_refits(state: SlamState, rel: torch.Tensor, rates: list[float]) -> Ta
     for col in ("rate", "score", "cos(E, Ê)", "best gain"):
         table.add_column(col, justify="right")
     for rate in rates:
-        trial = fit(state, se3_exp(rate * se3_log(rel[: m + 1])), None)
+        trial = fit(state, scaled_motion(rel[: m + 1], rate), None)
         losses, ee, pp, ep = [], 0.0, 0.0, 0.0
         for win, gray in fixed_windows(trial, span, seed, EVAL_WINDOWS):  # as fixed_window_loss scores
             losses.append(window_event_score(win.frames, gray, cfg.loss))

@@ -121,6 +121,8 @@ class GlobalBAConfig:
     lr_boost: float
     tv_weight: float
     max_n_winsize: int
+    rate_check: float
+    rate_check_steps: int
 
 
 @dataclass(frozen=True)
@@ -316,6 +318,14 @@ def _check_ranges(cfg: Config, source: str) -> None:
     if min(cfg.scale.range_weight, cfg.scale.rate_weight, cfg.init.search_range_weight) < 0:
         problems.append(
             "scale.range_weight, scale.rate_weight and init.search_range_weight must be >= 0 (0 = off)"
+        )
+    rc = cfg.global_ba
+    if not 0 <= rc.rate_check < 1 or rc.rate_check_steps < 1:
+        problems.append("global_ba.rate_check must be in [0, 1) (0 = off) and rate_check_steps >= 1")
+    if rc.rate_check > 0 and cfg.scale.source == "range" and cfg.scale.surface_read != "end":
+        problems.append(
+            "global_ba.rate_check moves the cameras after tracking: with scale.source = 'range' it needs "
+            "scale.surface_read = 'end' (the first surface read from the map refitted to them)"
         )
     if cfg.trajectory.smoothing_time < 0:
         problems.append("trajectory.smoothing_time must be >= 0 (seconds; 0 = off)")

@@ -1,9 +1,11 @@
 """The SLAM loop over a sequence: the start (motion search, initialization, optionally in branches),
 then per chunk tracking, local BA every ``mapping.every`` frames and global BA every
-``global_ba.every`` frames, and a final global BA. With ``trajectory.smoothing_time`` the tracked
-positions are smoothed just before it (:mod:`evgs.slam.smoothing`), so that it refits the map to the
-smoothed path. With a range meter, the map's first-surface scale is read before both
-(:func:`~evgs.slam.metric_scale.read_surface_scale`; none with ``scale.surface_read = "end"``).
+``global_ba.every`` frames, and a final global BA. Before it, in this order: with
+``global_ba.rate_check`` the tracked motion's speed is checked over the whole run
+(:mod:`evgs.slam.rate_check`); with a range meter the map's first-surface scale is read
+(:func:`~evgs.slam.metric_scale.read_surface_scale`; none with ``scale.surface_read = "end"``); with
+``trajectory.smoothing_time`` the tracked positions are smoothed (:mod:`evgs.slam.smoothing`), so that
+the final global BA refits the map to the smoothed path.
 
 The state is snapshotted at every frame boundary and written to ``checkpoints/`` every
 ``output.checkpoint_every`` frames; Ctrl-C (KeyboardInterrupt) writes the last boundary's snapshot, so
@@ -30,6 +32,7 @@ from evgs.slam.guards import BrightnessAnchor
 from evgs.slam.metric_scale import apply_scale, estimate_scale, range_agreement, read_surface_scale
 from evgs.slam.optimize import StageReporter
 from evgs.slam.range_prior import RangePrior
+from evgs.slam.rate_check import check_rate
 from evgs.slam.run_dir import RunDir
 from evgs.slam.smoothing import smooth_trajectory
 from evgs.slam.stages import global_ba, initialize, search, start_from, step_chunk
@@ -76,6 +79,12 @@ def initial_gaussians(
     with torch.no_grad():
         gaussians["means"][:, 2] += g.init_depth
     return gaussians
+
+
+def seeded_map(state: SlamState) -> Gaussians:
+    """The map as :func:`new_state` seeded it (the same random draws), for refits that start afresh."""
+    generator = torch.Generator().manual_seed(state.cfg.seed)
+    return initial_gaussians(state.cfg.gaussians, state.data, state.num_init_chunks(), generator)
 
 
 def seeding_weights(counts: Tensor, min_events: int, fill_gap: int) -> Tensor:
@@ -228,6 +237,8 @@ def run_slam(
             step_chunk(state, note, reporter)
             boundary()
         if not state.position.finished:
+            if cfg.global_ba.rate_check > 0:
+                note(check_rate(state, seeded_map(state), reporter))
             state.surface_scale = read_surface_scale(state)  # before the smoother: the map fits these cameras
             tau = cfg.trajectory.smoothing_time
             if tau > 0:

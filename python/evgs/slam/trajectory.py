@@ -49,6 +49,13 @@ def constant_velocity(t_prev2: Tensor, t_prev: Tensor, ratio: float = 1.0) -> Te
     return t_prev @ (rel if ratio == 1.0 else se3_exp(ratio * se3_log(rel)))
 
 
+def scaled_motion(knots: Tensor, factor: float) -> Tensor:
+    """``knots`` (K, 4, 4) with each one's motion from the first scaled: ``T_0 · Exp(f · Log(T_0⁻¹ T_k))``.
+    For a constant velocity (an orbit, an approach) this is the same path at ``f`` times the speed."""
+    rel = se3_log(se3_inverse(knots[:1]) @ knots)
+    return knots[:1] @ se3_exp(factor * rel)
+
+
 def random_knots(n: int, sigma: float, generator: torch.Generator) -> Tensor:
     """``n`` near-identity poses ``Exp(ξ)``, ``ξ ~ N(0, σ²)`` (the reference's initial knots)."""
     xi = torch.randn(n, 6, generator=generator, dtype=torch.float64) * sigma

@@ -1,0 +1,87 @@
+"""The rate check before the final global BA: the tracked motion's speed scored over the whole run."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("evgs.render")
+
+from evgs.config import ConfigError, load_config  # noqa: E402
+from evgs.slam.lie import se3_exp, se3_inverse, se3_log  # noqa: E402
+from evgs.slam.pipeline import seeded_map  # noqa: E402
+from evgs.slam.rate_check import check_rate, parabola_vertex, rate_factors  # noqa: E402
+from evgs.slam.trajectory import Trajectory, scaled_motion  # noqa: E402
+from slam_synth import make_sequence, search_state  # noqa: E402
+
+SLOW = 0.85  # the slowed run's speed, of the truth's
+STEPS = 300  # each refit's: at 60 the tiny scene's refits score every faster motion better
+
+
+def test_scaled_motion_is_the_same_constant_velocity_path_at_another_speed():
+    T0 = se3_exp(torch.tensor([0.3, -0.2, 1.0, 0.4, 0.1, -0.7], dtype=torch.float64))
+    xi = torch.tensor([0.02, 0.01, -0.03, 0.015, -0.01, 0.02], dtype=torch.float64)
+    k = torch.arange(6, dtype=torch.float64)[:, None]
+    knots = T0 @ se3_exp(k * xi)
+    for f in (0.8, 1.0, 1.3):
+        got = scaled_motion(knots, f)
+        assert torch.allclose(got, T0 @ se3_exp(k * f * xi), atol=1e-12)
+        assert torch.equal(got[0], knots[0])
+
+
+def test_the_vertex_is_the_parabola_s_through_the_best_and_its_neighbours():
+    f = rate_factors(0.1)
+    assert np.allclose(f, [0.9, 0.95, 1.0, 1.05, 1.1])
+    assert parabola_vertex(f, (f - 1.03) ** 2 + 0.5) == pytest.approx(1.03)
+    # Only the best and its neighbours count: a steep rise far below does not pull the vertex up.
+    steep = np.array([9.0, 4.0, 1.0, 0.2, 0.6])
+    assert parabola_vertex(f, steep) == pytest.approx(1.05 + 0.05 * 0.5 * 0.4 / 1.2)
+    assert parabola_vertex(f, np.array([900.0, 4.0, 1.0, 0.2, 0.6])) == parabola_vertex(f, steep)
+    assert parabola_vertex(f, (f - 1.3) ** 2) == pytest.approx(1.1)  # beyond the scan: its end
+    assert parabola_vertex(f, -0.1 * f) == pytest.approx(1.1)  # a line: its lower end
+
+
+@pytest.fixture(scope="module")
+def checked(tmp_path_factory):
+    """The scene's own path at its speed and at 0.85 of it (as a run that kept the search's slow rung
+    would hold it), each rate-checked: the state, its map before, the record and the factor applied."""
+    seq, scene = make_sequence(tmp_path_factory.mktemp("seq") / "synth")
+    P = torch.as_tensor(scene.poses)
+    truth = se3_inverse(P[:1]) @ P
+    out = {}
+    for speed in (1.0, SLOW):
+        state = search_state(seq, "global_ba.rate_check=0.3", f"global_ba.rate_check_steps={STEPS}")
+        state.traj = Trajectory(scene.frames_us, scaled_motion(truth, speed))
+        before = state.gaussians.state()
+        record = check_rate(state, seeded_map(state))
+        out[speed] = (state, before, record, float(record.note.split("×")[1].split()[0]))
+    return truth, out
+
+
+def test_the_rate_check_speeds_a_slowed_run_up_towards_the_truth(checked):
+    """From 0.85 of the truth's speed the check speeds the run up, nearer the truth, and by more than it
+    speeds up the truth itself; the knots are the tracked ones scaled by the factor, the run's map is
+    left alone, and the record says what was tried."""
+    truth, out = checked
+    state, before, record, factor = out[SLOW]
+    assert factor > out[1.0][3] and abs(out[1.0][3] - 1) < 0.1, (record.note, out[1.0][2].note)
+    chord = lambda T: float(se3_log(se3_inverse(T[0]) @ T[-1])[3:].norm())  # noqa: E731
+    got = state.traj.knots().detach()
+    assert abs(chord(got) - chord(truth)) < abs(chord(truth) * SLOW - chord(truth))
+    assert torch.allclose(got, scaled_motion(truth, SLOW * factor), atol=1e-9)
+    assert all(torch.equal(v, before[k]) for k, v in state.gaussians.state().items())
+    assert record.stage == "rate" and record.iterations == 5 * STEPS and state.history[-1] is record
+    assert record.note.count("×") == 6 and record.seconds > 0
+
+
+def test_the_rate_check_needs_the_first_surface_read_at_the_end():
+    """It moves the cameras the map was fitted to: a first-surface read before the final BA would
+    measure the run's map from cameras it no longer fits."""
+    bad = ["global_ba.rate_check=0.1", "scale.source=range", "scale.surface_read=before_final_ba"]
+    with pytest.raises(ConfigError, match="scale.surface_read = 'end'"):
+        load_config(overrides=bad)
+    load_config(overrides=[*bad[:2], "scale.surface_read=end"])
+    load_config(overrides=[bad[0], "scale.source=none"])
+    with pytest.raises(ConfigError, match="rate_check must be in"):
+        load_config(overrides=["global_ba.rate_check=1.5"])
