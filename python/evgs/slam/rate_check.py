@@ -32,12 +32,13 @@ from evgs.slam.optimize import StageReporter, fixed_window_loss
 from evgs.slam.state import SlamState, StageRecord, stage_seed
 from evgs.slam.trajectory import scaled_motion
 
-SCORE_WINDOWS = (
-    16  # fixed windows each factor is scored on (all of the run's chunks: more than the search's 8)
-)
+# Fixed windows each factor is scored on: they are drawn from all of the run's chunks, so more than the
+# search's 8.
+SCORE_WINDOWS = 16
 
 
 def rate_factors(r: float) -> np.ndarray:
+    """The five speeds scored, as factors of the tracked one."""
     return 1.0 + r * np.array([-1.0, -0.5, 0.0, 0.5, 1.0])
 
 
@@ -52,11 +53,10 @@ def parabola_vertex(factors: np.ndarray, scores: np.ndarray) -> float:
     return float(factors[i] + 0.5 * step * (lo - hi) / (lo - 2 * mid + hi))
 
 
-def check_rate(
-    state: SlamState, seeded: Gaussians, reporter: StageReporter | None = None
-) -> StageRecord:  # fmt: skip
+def check_rate(state: SlamState, seeded: Gaussians, reporter: StageReporter | None = None) -> StageRecord:
     """Score the tracked motion at each factor with ``seeded`` (the run's map as seeded) refitted to it,
-    and scale ``state``'s trajectory by the best-fitting parabola's vertex."""
+    and scale ``state``'s trajectory by :func:`parabola_vertex` of the scores; the run's map is left as
+    it is (the final global BA refits it to the new cameras)."""
     t0 = time.perf_counter()
     cfg, data = state.cfg, state.data
     n = len(state.traj) - 1
