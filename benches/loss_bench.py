@@ -1,12 +1,15 @@
-"""The SSIM term of the event loss, forward and backward, with its Gaussian window blurred three ways.
+"""The loss terms the Rust core computes, forward and backward, beside their torch form.
 
 Run: ``make dev && PYTHONPATH=python $VENV/bin/python benches/loss_bench.py`` (or ``make bench``).
-Prints milliseconds per ``(1 − SSIM).backward()`` on a batch of two float32 renders at the coarse
-(160×120) and full (640×480) levels, on the SLAM's two torch threads with its OpenMP wait policy
+Prints milliseconds per ``term.backward()`` on what one mapping step evaluates, at the coarse
+(320×240) and full (640×480) levels, on the SLAM's two torch threads with its OpenMP wait policy
 (``PASSIVE``, as the ``evgs`` command sets it: idle threads sleep, so every small op pays a wake-up):
-- ``evgs``: the Rust core's separable blur (``evgs.slam.loss``, what the SLAM runs);
-- ``torch loop``: the same fused multiply-adds as 44 torch ops (evgs's blur before §68, bit-identical);
-- ``torch conv2d``: two 1-D convolutions with torch's autograd.
+- the SSIM term ``1 − SSIM`` of a window's two float32 renders: ``evgs.slam.loss.ssim`` (the Rust
+  kernel, its gradient in the forward pass) against ``evgs.slam.loss_torch.ssim`` (torch autograd, the
+  blur by two 1-D ``conv2d``);
+- the relief prior ``depth_variation`` of both views' depth and opacity (a render-like target: an
+  opaque disc of varying depth on a transparent background): ``evgs.slam.loss`` against
+  ``evgs.slam.loss_torch`` (boolean indexing and ``median`` in torch).
 """
 
 from __future__ import annotations
@@ -17,72 +20,59 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads, as ev
 
 import time
 from collections.abc import Callable
-from unittest import mock
 
 import torch
-import torch.nn.functional as F
-from evgs.slam import loss
+from evgs.slam import loss, loss_torch
 from torch import Tensor
 
-Blur = Callable[[Tensor, Tensor], Tensor]
 
+def ms_per_call(step: Callable[[], Tensor], inputs: list[Tensor], reps: int) -> float:
+    def once() -> None:
+        for t in inputs:
+            t.grad = None
+        step().backward()
 
-def torch_loop(x: Tensor, k: Tensor) -> Tensor:
-    """The peer: one ``mul`` and ``n − 1`` ``add_(alpha=k[i])`` per pass, autograd through them."""
-    n, taps = len(k), k.tolist()
-    w, h = x.shape[-1] - n + 1, x.shape[-2] - n + 1
-    rows = x[..., :, :w] * taps[0]
-    for i in range(1, n):
-        rows = rows.add(x[..., :, i : i + w], alpha=taps[i])
-    out = rows[..., :h, :] * taps[0]
-    for i in range(1, n):
-        out = out.add(rows[..., i : i + h, :], alpha=taps[i])
-    return out
-
-
-def torch_conv2d(x: Tensor, k: Tensor) -> Tensor:
-    flat = x.reshape(-1, 1, *x.shape[-2:])
-    out = F.conv2d(F.conv2d(flat, k.view(1, 1, 1, -1)), k.view(1, 1, -1, 1))
-    return out.reshape(*x.shape[:-2], *out.shape[-2:])
-
-
-def ssim_term(a: Tensor, b: Tensor, blur: Blur) -> Tensor:
-    """``1 − SSIM`` by ``evgs.slam.loss.ssim`` itself, with its blur swapped for ``blur``."""
-    with mock.patch.object(loss, "_blur_valid", blur):
-        return 1 - loss.ssim(a, b).mean()
-
-
-def ms_per_call(a: Tensor, b: Tensor, blur: Blur, reps: int) -> float:
-    def step() -> None:
-        a.grad = None
-        ssim_term(a, b, blur).backward()
-
-    step()
+    once()
     best = float("inf")
     for _ in range(3):
         t0 = time.perf_counter()
         for _ in range(reps):
-            step()
+            once()
         best = min(best, (time.perf_counter() - t0) / reps)
     return best * 1e3
+
+
+def disc_views(h: int, w: int, gen: torch.Generator) -> tuple[Tensor, Tensor]:
+    """Depth and opacity of two views of an opaque disc (radius 0.35 of the height) at depth ≈ 3."""
+    y, x = torch.meshgrid(
+        torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij"
+    )
+    r = torch.hypot(y - h / 2, x - w / 2) / h
+    alpha = torch.sigmoid((0.35 - r) * 60).expand(2, h, w).contiguous()
+    depth = (3 + 0.3 * torch.rand(2, h, w, generator=gen)) * alpha
+    return depth.requires_grad_(), alpha.requires_grad_()
+
+
+def bench_level(h: int, w: int, reps: int, gen: torch.Generator) -> None:
+    a = torch.rand(1, h, w, generator=gen, requires_grad=True)
+    b = (0.7 * a.detach() + 0.3 * torch.rand(1, h, w, generator=gen)).requires_grad_()
+    depth, alpha = disc_views(h, w, gen)
+    terms = {
+        ("1 − SSIM", f"1 × {w}×{h}"): ([a, b], lambda m: 1 - m.ssim(a, b).mean()),
+        ("depth_variation", f"2 × {w}×{h}"): ([depth, alpha], lambda m: m.depth_variation(depth, alpha)),
+    }
+    for (name, size), (inputs, term) in terms.items():
+        ours = ms_per_call(lambda term=term: term(loss), inputs, reps)
+        peer = ms_per_call(lambda term=term: term(loss_torch), inputs, reps)
+        print(f"{name:>16} {size:>14} {ours:8.2f} {peer:8.2f}   evgs {peer / ours:.1f}× torch")
 
 
 def main() -> None:
     torch.set_num_threads(2)
     gen = torch.Generator().manual_seed(0)
-    blurs: dict[str, Blur] = {
-        "evgs": loss._blur_valid,
-        "torch loop": torch_loop,
-        "torch conv2d": torch_conv2d,
-    }
-    print(f"{'renders':>14} " + " ".join(f"{name:>13}" for name in blurs) + "   (ms per forward + backward)")
-    for h, w, reps in [(120, 160, 50), (480, 640, 5)]:
-        a = torch.rand(2, h, w, generator=gen, requires_grad=True)
-        b = torch.rand(2, h, w, generator=gen)
-        times = {name: ms_per_call(a, b, blur, reps) for name, blur in blurs.items()}
-        speedup = min(v for k, v in times.items() if k != "evgs") / times["evgs"]
-        cells = " ".join(f"{t:13.2f}" for t in times.values())
-        print(f"{f'2 × {w}×{h}':>14} {cells}   evgs {speedup:.1f}× the faster peer")
+    print(f"{'term':>16} {'renders':>14} {'evgs':>8} {'torch':>8}   (ms per forward + backward)")
+    for h, w, reps in [(240, 320, 40), (480, 640, 10)]:
+        bench_level(h, w, reps, gen)
 
 
 if __name__ == "__main__":

@@ -8,9 +8,8 @@ import math
 import pytest
 import torch
 from evgs.config import load_config
+from evgs.slam import loss_torch
 from evgs.slam.loss import (
-    _blur_valid,
-    _gaussian_kernel,
     depth_variation,
     event_loss,
     event_mask,
@@ -200,39 +199,56 @@ def test_shape_errors():
         event_loss(torch.zeros(1, 20, 20), torch.zeros(1, 20, 20), torch.zeros(1, 20, 21), LOSS)
 
 
-def test_blur_backward_matches_conv2d_autograd_and_finite_differences():
-    """The SSIM blur's hand-written backward (the adjoint correlation) against torch's conv2d autograd
-    in float64, and against finite differences (gradcheck)."""
+def test_ssim_kernel_matches_the_torch_reference_and_finite_differences():
+    """The Rust SSIM's value and gradient (computed in its forward pass) against torch autograd of the
+    float64 reference (:mod:`evgs.slam.loss_torch`), and against finite differences (gradcheck)."""
     gen = torch.Generator().manual_seed(0)
-    x = torch.rand(2, 3, 17, 23, dtype=torch.float64, generator=gen, requires_grad=True)
-    k = _gaussian_kernel(5, 1.2, torch.float64)
-    w = torch.rand(2, 3, 13, 19, dtype=torch.float64, generator=gen)
-    (g_ours,) = torch.autograd.grad((_blur_valid(x, k) * w).sum(), x)
-    flat = x.reshape(-1, 1, 17, 23)
-    ref = torch.nn.functional.conv2d(
-        torch.nn.functional.conv2d(flat, k.view(1, 1, 1, -1)), k.view(1, 1, -1, 1)
-    )
-    assert torch.allclose(_blur_valid(x, k), ref.reshape(2, 3, 13, 19), atol=1e-12)
-    (g_ref,) = torch.autograd.grad((ref.reshape(2, 3, 13, 19) * w).sum(), x)
-    assert torch.allclose(g_ours, g_ref, atol=1e-12)
-    assert torch.autograd.gradcheck(
-        lambda t: _blur_valid(t, k), (x[:1, :1, :9, :8].detach().requires_grad_(),)
-    )
+    a = torch.rand(2, 23, 29, dtype=torch.float64, generator=gen, requires_grad=True)
+    b = (0.6 * a.detach() + 0.4 * torch.rand(2, 23, 29, dtype=torch.float64, generator=gen)).requires_grad_()
+    w = torch.tensor([0.7, -1.3], dtype=torch.float64)  # a different upstream gradient per image
+    got = ssim(a, b, 7, 1.2, 2.0)
+    want = loss_torch.ssim(a, b, 7, 1.2, 2.0)
+    assert torch.allclose(got, want, atol=1e-13)
+    g_got = torch.autograd.grad((got * w).sum(), (a, b))
+    g_want = torch.autograd.grad((want * w).sum(), (a, b))
+    for x, y in zip(g_got, g_want, strict=True):
+        assert torch.allclose(x, y, atol=1e-12)
+    small = (a[:1, :9, :10].detach().requires_grad_(), b[:1, :9, :10].detach().requires_grad_())
+    assert torch.autograd.gradcheck(lambda x, y: ssim(x, y, 5, 1.0), small)
+    # Only the inputs that need a gradient get one; without any, no gradient is computed.
+    c = b.detach()
+    (ga,) = torch.autograd.grad(ssim(a, c).sum(), (a,))
+    assert torch.allclose(ga, torch.autograd.grad(loss_torch.ssim(a, c).sum(), (a,))[0], atol=1e-12)
+    assert not ssim(a.detach(), c).requires_grad
 
 
-def test_blur_in_float32_matches_a_float64_conv2d_and_refuses_what_it_cannot_filter():
-    """The Rust core's float32 path (the SLAM's) against torch's conv2d in float64; a kernel wider than
-    the image, an integer tensor: clear errors."""
+def test_ssim_in_float32_matches_float64_and_refuses_what_it_cannot_compute():
     gen = torch.Generator().manual_seed(1)
-    x = torch.rand(2, 5, 30, 41, dtype=torch.float64, generator=gen)
-    k = _gaussian_kernel(11, 1.5, torch.float64)
-    ref = torch.nn.functional.conv2d(
-        torch.nn.functional.conv2d(x.reshape(-1, 1, 30, 41), k.view(1, 1, 1, -1)), k.view(1, 1, -1, 1)
-    ).reshape(2, 5, 20, 31)
-    got = _blur_valid(x.float(), k.float())
-    assert got.dtype == torch.float32 and got.shape == (2, 5, 20, 31)
-    assert torch.allclose(got.double(), ref, atol=1e-6)
-    with pytest.raises(ValueError, match="at least 11×11"):
-        _blur_valid(x[..., :10, :], k)
+    a = torch.rand(2, 30, 41, dtype=torch.float64, generator=gen)
+    b = 0.5 * a + 0.5 * torch.rand(2, 30, 41, dtype=torch.float64, generator=gen)
+    got = ssim(a.float(), b.float())
+    assert got.dtype == torch.float32 and got.shape == (2,)
+    assert torch.allclose(got.double(), loss_torch.ssim(a, b), atol=1e-5)
     with pytest.raises(ValueError, match="float32 or float64"):
-        _blur_valid(x.to(torch.int32), k)
+        ssim(a.to(torch.int32), b.to(torch.int32))
+    with pytest.raises(ValueError, match="one dtype"):
+        ssim(a, b.float())
+
+
+def test_depth_variation_kernel_matches_the_torch_reference():
+    """The Rust relief prior's value and gradient against torch autograd of the float64 reference, on
+    views with transparent pixels, and in float32."""
+    gen = torch.Generator().manual_seed(4)
+    alpha = torch.rand((2, 11, 13), dtype=torch.float64, generator=gen)  # about half opaque
+    depth = ((torch.rand((2, 11, 13), dtype=torch.float64, generator=gen) + 2) * alpha).requires_grad_()
+    alpha.requires_grad_()
+    got, want = depth_variation(depth, alpha), loss_torch.depth_variation(depth, alpha)
+    assert got.item() == pytest.approx(want.item(), rel=1e-12)
+    for x, y in zip(
+        torch.autograd.grad(got, (depth, alpha)), torch.autograd.grad(want, (depth, alpha)), strict=True
+    ):
+        assert torch.allclose(x, y, atol=1e-12)
+    got32 = depth_variation(depth.detach().float(), alpha.detach().float())
+    assert got32.dtype == torch.float32 and got32.item() == pytest.approx(want.item(), rel=1e-5)
+    with pytest.raises(ValueError, match="one shape"):
+        depth_variation(depth, alpha[:1])

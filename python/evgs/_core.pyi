@@ -150,6 +150,7 @@ def undistort_map(
 # --- raster (src/py/raster.rs) ---
 
 _F32 = npt.NDArray[np.float32]
+_F64 = npt.NDArray[np.float64]
 
 class RasterState:
     """Opaque saved forward pass (tile lists, final transmittance, last contributors)."""
@@ -220,10 +221,24 @@ def rasterize_pose_jvp(
 
 # --- loss (src/py/loss.rs) ---
 
-def correlate_valid_f32(x: _F32, planes: int, height: int, width: int, taps: _F32) -> _F32: ...
-def correlate_valid_f64(
-    x: npt.NDArray[np.float64], planes: int, height: int, width: int, taps: npt.NDArray[np.float64]
-) -> npt.NDArray[np.float64]: ...
+def ssim_f32(
+    a: _F32, b: _F32, shape: tuple[int, int, int], taps: _F32, c1: float, c2: float, with_grad: bool
+) -> tuple[_F32, tuple[_F32, _F32] | None]:
+    """Mean SSIM of each (B, H, W) image pair and, with ``with_grad``, the flat gradients of each
+    image's value with respect to ``a`` and ``b`` (src/loss/ssim.rs)."""
+
+def ssim_f64(
+    a: _F64, b: _F64, shape: tuple[int, int, int], taps: _F64, c1: float, c2: float, with_grad: bool
+) -> tuple[_F64, tuple[_F64, _F64] | None]: ...
+def depth_variation_f32(
+    depth: _F32, alpha: _F32, shape: tuple[int, int, int], min_alpha: float, with_grad: bool
+) -> tuple[float, tuple[_F32, _F32] | None]:
+    """The relief prior of (B, H, W) depth and opacity and, with ``with_grad``, its flat gradients with
+    respect to both (src/loss/relief.rs)."""
+
+def depth_variation_f64(
+    depth: _F64, alpha: _F64, shape: tuple[int, int, int], min_alpha: float, with_grad: bool
+) -> tuple[float, tuple[_F64, _F64] | None]: ...
 
 # --- sim (src/py/sim.rs) ---
 

@@ -1,120 +1,89 @@
-//! Separable "valid" correlation of image planes with one 1-D kernel, along rows then columns: the
-//! Gaussian window of SSIM (forward) and, on a zero-padded gradient with the flipped kernel, its
-//! adjoint (backward).
+//! The separable "valid" correlation with a 1-D kernel along one line, and its adjoint: the pieces of
+//! SSIM's Gaussian window ([`super::ssim`]) forward and backward.
 //!
-//! Each output is `x[0]·k[0]` followed by one fused multiply-add per further tap, in tap order: the
-//! arithmetic of torch's `mul` + `add_(alpha=k[i])` loop this replaces (whose vectorised CPU kernel is an
-//! FMA), so results are the same to the last bit. Torch spent most of an SSIM call in the 44 small
-//! ops' dispatch and OpenMP barriers; here both passes are one rayon loop each over rows.
+//! Each output of [`correlate_line`] is `x[0]·k[0]` followed by one fused multiply-add per further tap,
+//! in tap order (the arithmetic of torch's `mul` + `add_(alpha=k[i])` loop this once replaced). The inner
+//! loops run along the line, contiguous in memory in both passes of a 2-D filter, so they vectorise, and
+//! a block of outputs stays in registers across the taps.
 
-use std::ops::Mul;
+use super::Real;
 
-use rayon::prelude::*;
+/// The longest kernel the lines take (SSIM's window is 11).
+pub const MAX_TAPS: usize = 32;
 
-use crate::error::{Error, Result};
+/// Outputs computed together in registers: each is loaded and stored once, not once per tap.
+const BLOCK: usize = 32;
 
-/// The float types the filter runs on (the SLAM's float32, the tests' float64).
-pub trait Sample: Copy + Send + Sync + Mul<Output = Self> + Default {
-    /// `self · a + b` with one rounding.
-    fn fma(self, a: Self, b: Self) -> Self;
-}
-
-impl Sample for f32 {
-    #[inline(always)]
-    fn fma(self, a: f32, b: f32) -> f32 {
-        self.mul_add(a, b)
-    }
-}
-
-impl Sample for f64 {
-    #[inline(always)]
-    fn fma(self, a: f64, b: f64) -> f64 {
-        self.mul_add(a, b)
-    }
-}
-
-/// Correlate the `planes` row-major `height × width` images in `x` with `taps` along each row, then
-/// along each column, keeping only the positions where the kernel lies wholly inside: the result is
-/// `planes × (height − n + 1) × (width − n + 1)` for `n` taps.
-pub fn correlate_valid<T: Sample>(
-    x: &[T],
-    planes: usize,
-    height: usize,
-    width: usize,
-    taps: &[T],
-) -> Result<Vec<T>> {
-    let n = taps.len();
-    if n == 0 || n > height || n > width {
-        return Err(Error::Invalid(format!(
-            "blur: a {n}-tap kernel needs images of at least {n}×{n} pixels, got {height}×{width}"
-        )));
-    }
-    if x.len() != planes * height * width {
-        return Err(Error::Invalid(format!(
-            "blur: {} values are not {planes} planes of {height}×{width}",
-            x.len()
-        )));
-    }
-    let (h, w) = (height - n + 1, width - n + 1);
-    // Rows of every plane are independent in the first pass, output rows in the second.
-    let mut rows = vec![T::default(); planes * height * w];
-    rows.par_chunks_mut(w).zip(x.par_chunks(width)).for_each(|(out, src)| correlate_line(src, 1, taps, out));
-    let mut out = vec![T::default(); planes * h * w];
-    out.par_chunks_mut(h * w).zip(rows.par_chunks(height * w)).for_each(|(out, plane)| {
-        out.par_chunks_mut(w).enumerate().for_each(|(r, line)| correlate_line(&plane[r * w..], w, taps, line))
-    });
-    Ok(out)
-}
-
-/// `out[j] = Σ_i taps[i] · src[j + i·stride]`, accumulated in tap order (see the module doc). The inner
-/// loop runs along `j`, contiguous in both passes, so it vectorises.
+/// `out[j] = Σ_i weights[i] · lines[i][j]`, the first term a product and one fused multiply-add per
+/// further one, in order (`lines.len() = weights.len()` ≥ 1, each line at least `out.len()` long).
 #[inline]
-fn correlate_line<T: Sample>(src: &[T], stride: usize, taps: &[T], out: &mut [T]) {
+pub fn combine_lines<T: Real>(lines: &[&[T]], weights: &[T], out: &mut [T]) {
     let len = out.len();
-    for (o, &s) in out.iter_mut().zip(&src[..len]) {
-        *o = s * taps[0];
-    }
-    for (i, &t) in taps.iter().enumerate().skip(1) {
-        let line = &src[i * stride..i * stride + len];
-        for (o, &s) in out.iter_mut().zip(line) {
-            *o = s.fma(t, *o);
+    if len < BLOCK {
+        for (j, o) in out.iter_mut().enumerate() {
+            *o = lines[1..]
+                .iter()
+                .zip(&weights[1..])
+                .fold(lines[0][j] * weights[0], |acc, (l, &t)| l[j].fma(t, acc));
         }
+        return;
     }
+    // Blocks from the start, the last one flush with the end (it may overlap the one before: each
+    // output is a function of the inputs alone, so computing it twice gives it the same value).
+    let mut j = 0;
+    loop {
+        let at = j.min(len - BLOCK);
+        let mut acc = [T::ZERO; BLOCK];
+        for (a, &s) in acc.iter_mut().zip(&lines[0][at..at + BLOCK]) {
+            *a = s * weights[0];
+        }
+        for (line, &t) in lines[1..].iter().zip(&weights[1..]) {
+            for (a, &s) in acc.iter_mut().zip(&line[at..at + BLOCK]) {
+                *a = s.fma(t, *a);
+            }
+        }
+        out[at..at + BLOCK].copy_from_slice(&acc);
+        if at + BLOCK == len {
+            return;
+        }
+        j += BLOCK;
+    }
+}
+
+/// `out[j] = Σ_i taps[i] · src[j + i·stride]` for every `j < out.len()`, accumulated in tap order.
+/// `stride` 1 filters along a row; the row length of a plane filters along its columns.
+#[inline]
+pub fn correlate_line<T: Real>(src: &[T], stride: usize, taps: &[T], out: &mut [T]) {
+    let mut lines: [&[T]; MAX_TAPS] = [&[]; MAX_TAPS];
+    for (i, line) in lines.iter_mut().enumerate().take(taps.len()) {
+        *line = &src[i * stride..];
+    }
+    combine_lines(&lines[..taps.len()], taps, out);
+}
+
+/// The adjoint of [`correlate_line`] with stride 1: `out[x] = Σ_i taps[i] · src[x − i]` over the `i`
+/// with `0 ≤ x − i < src.len()`, so `out` holds `src.len() + taps.len() − 1` values (the full
+/// correlation of the zero-padded `src` with the flipped kernel). `padded` is scratch space.
+#[inline]
+pub fn correlate_line_adjoint<T: Real>(src: &[T], taps: &[T], padded: &mut Vec<T>, out: &mut [T]) {
+    let n = taps.len();
+    debug_assert_eq!(out.len(), src.len() + n - 1);
+    padded.clear();
+    padded.resize(src.len() + 2 * (n - 1), T::ZERO);
+    padded[n - 1..n - 1 + src.len()].copy_from_slice(src);
+    let mut flipped = [T::ZERO; MAX_TAPS];
+    for (f, &t) in flipped.iter_mut().zip(taps.iter().rev()) {
+        *f = t;
+    }
+    correlate_line(padded, 1, &flipped[..n], out);
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    /// The definition, one output at a time, in the same order of operations.
-    fn naive(x: &[f64], planes: usize, height: usize, width: usize, taps: &[f64]) -> Vec<f64> {
-        let n = taps.len();
-        let (h, w) = (height - n + 1, width - n + 1);
-        let at = |p: usize, r: usize, c: usize| x[(p * height + r) * width + c];
-        let row = |p: usize, r: usize, c: usize| {
-            taps.iter()
-                .enumerate()
-                .skip(1)
-                .fold(at(p, r, c) * taps[0], |acc, (i, &t)| at(p, r, c + i).fma(t, acc))
-        };
-        let mut out = Vec::with_capacity(planes * h * w);
-        for p in 0..planes {
-            for r in 0..h {
-                for c in 0..w {
-                    let v = taps
-                        .iter()
-                        .enumerate()
-                        .skip(1)
-                        .fold(row(p, r, c) * taps[0], |acc, (i, &t)| row(p, r + i, c).fma(t, acc));
-                    out.push(v);
-                }
-            }
-        }
-        out
-    }
-
-    fn pseudo_random(len: usize) -> Vec<f64> {
-        let mut s = 0x9e37_79b9_7f4a_7c15_u64;
+    fn pseudo_random(len: usize, seed: u64) -> Vec<f64> {
+        let mut s = 0x9e37_79b9_7f4a_7c15_u64 ^ seed;
         (0..len)
             .map(|_| {
                 s ^= s << 13;
@@ -126,33 +95,30 @@ mod tests {
     }
 
     #[test]
-    fn matches_the_definition_to_the_last_bit() {
-        let (planes, height, width) = (3, 17, 29);
-        let x = pseudo_random(planes * height * width);
+    fn a_line_matches_the_definition_to_the_last_bit() {
         let taps = [0.1, 0.2, 0.4, 0.2, 0.1];
-        let got = correlate_valid(&x, planes, height, width, &taps).unwrap();
-        assert_eq!(got, naive(&x, planes, height, width, &taps));
-        assert_eq!(got.len(), planes * 13 * 25);
+        let (stride, len) = (3, 37); // two register blocks and a tail
+        let src = pseudo_random(len + (taps.len() - 1) * stride, 1);
+        let mut out = vec![0.0; len];
+        correlate_line(&src, stride, &taps, &mut out);
+        for (j, &o) in out.iter().enumerate() {
+            let want = (1..taps.len()).fold(src[j] * taps[0], |acc, i| src[j + i * stride].fma(taps[i], acc));
+            assert_eq!(o, want);
+        }
     }
 
     #[test]
-    fn an_impulse_returns_the_kernel_and_a_constant_its_sum() {
-        // A unit impulse at (2, 2) of a 5×5 image, 3-tap kernel: output (r, c) = k[2−r]·k[2−c].
-        let taps = [0.25f32, 0.5, 0.25];
-        let mut x = vec![0f32; 25];
-        x[12] = 1.0;
-        let got = correlate_valid(&x, 1, 5, 5, &taps).unwrap();
-        let expect: Vec<f32> = (0..3).flat_map(|r| (0..3).map(move |c| taps[2 - r] * taps[2 - c])).collect();
-        assert_eq!(got, expect);
-        let ones = correlate_valid(&[1f32; 4 * 6], 1, 4, 6, &taps).unwrap();
-        assert!(ones.iter().all(|&v| v == 1.0));
-    }
-
-    #[test]
-    fn a_kernel_wider_than_the_image_or_a_wrong_length_is_refused() {
-        let err = correlate_valid(&[0f32; 20], 1, 4, 5, &[1.0; 5]).unwrap_err().to_string();
-        assert!(err.contains("at least 5×5"), "{err}");
-        let err = correlate_valid(&[0f32; 19], 1, 4, 5, &[1.0; 3]).unwrap_err().to_string();
-        assert!(err.contains("19 values"), "{err}");
+    fn the_adjoint_satisfies_the_inner_product_identity() {
+        // ⟨K x, y⟩ = ⟨x, Kᵀ y⟩ for an asymmetric kernel.
+        let taps = [0.5, -0.25, 0.125, 1.0];
+        let x = pseudo_random(20, 2);
+        let y = pseudo_random(17, 3);
+        let mut kx = vec![0.0; 17];
+        correlate_line(&x, 1, &taps, &mut kx);
+        let mut kty = vec![0.0; 20];
+        correlate_line_adjoint(&y, &taps, &mut Vec::new(), &mut kty);
+        let lhs: f64 = kx.iter().zip(&y).map(|(a, b)| a * b).sum();
+        let rhs: f64 = x.iter().zip(&kty).map(|(a, b)| a * b).sum();
+        assert!((lhs - rhs).abs() < 1e-12, "{lhs} vs {rhs}");
     }
 }

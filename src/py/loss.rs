@@ -1,55 +1,119 @@
-//! Bindings for `crate::loss` (the SSIM window's blur). Planes arrive as flat contiguous numpy views of
-//! the caller's tensors (no copy) and leave as a flat numpy array that owns the Rust buffer (no copy);
-//! `evgs.slam.loss` gives them their shapes.
+//! Bindings for `crate::loss` (the SSIM term and the relief prior, each with its gradient). Images
+//! arrive as flat contiguous numpy views of the caller's tensors (no copy) and leave as flat numpy arrays
+//! that own the Rust buffers (no copy); `evgs.slam.loss` gives them their shapes.
 
 use numpy::{IntoPyArray, PyArray1, PyReadonlyArray1};
 use pyo3::prelude::*;
 
 use super::events::to_py_err;
-use crate::loss::blur::{self, Sample};
+use crate::loss::relief::depth_variation;
+use crate::loss::ssim::{ssim, SsimWindow};
+use crate::loss::{Planes, Real};
 
-fn correlate<'py, T: Sample + numpy::Element>(
+type Grads<'py, T> = Option<(Bound<'py, PyArray1<T>>, Bound<'py, PyArray1<T>>)>;
+
+fn grads<'py, T: numpy::Element>(py: Python<'py>, g: Option<(Vec<T>, Vec<T>)>) -> Grads<'py, T> {
+    g.map(|(x, y)| (x.into_pyarray(py), y.into_pyarray(py)))
+}
+
+#[allow(clippy::too_many_arguments)]
+fn ssim_any<'py, T: Real + numpy::Element>(
     py: Python<'py>,
-    x: PyReadonlyArray1<'py, T>,
-    planes: usize,
-    height: usize,
-    width: usize,
+    a: PyReadonlyArray1<'py, T>,
+    b: PyReadonlyArray1<'py, T>,
+    shape: (usize, usize, usize),
     taps: PyReadonlyArray1<'py, T>,
-) -> PyResult<Bound<'py, PyArray1<T>>> {
-    let (x, taps) = (x.as_slice()?, taps.as_slice()?);
-    let out = py.detach(|| blur::correlate_valid(x, planes, height, width, taps)).map_err(to_py_err)?;
-    Ok(out.into_pyarray(py))
+    c1: f64,
+    c2: f64,
+    with_grad: bool,
+) -> PyResult<(Bound<'py, PyArray1<T>>, Grads<'py, T>)> {
+    let (a, b, taps) = (a.as_slice()?, b.as_slice()?, taps.as_slice()?);
+    let planes = Planes { planes: shape.0, height: shape.1, width: shape.2 };
+    let window = SsimWindow { taps, c1: T::from_f64(c1), c2: T::from_f64(c2) };
+    let out = py.detach(|| ssim(a, b, planes, &window, with_grad)).map_err(to_py_err)?;
+    Ok((out.values.into_pyarray(py), grads(py, out.grad)))
 }
 
-/// `planes × (height − n + 1) × (width − n + 1)` float32: each `height × width` plane of `x`
-/// correlated with the `n` taps along its rows, then its columns ("valid" positions only).
-#[pyfunction]
-fn correlate_valid_f32<'py>(
+fn relief_any<'py, T: Real + numpy::Element>(
     py: Python<'py>,
-    x: PyReadonlyArray1<'py, f32>,
-    planes: usize,
-    height: usize,
-    width: usize,
+    depth: PyReadonlyArray1<'py, T>,
+    alpha: PyReadonlyArray1<'py, T>,
+    shape: (usize, usize, usize),
+    min_alpha: f64,
+    with_grad: bool,
+) -> PyResult<(f64, Grads<'py, T>)> {
+    let (depth, alpha) = (depth.as_slice()?, alpha.as_slice()?);
+    let planes = Planes { planes: shape.0, height: shape.1, width: shape.2 };
+    let out = py
+        .detach(|| depth_variation(depth, alpha, planes, T::from_f64(min_alpha), with_grad))
+        .map_err(to_py_err)?;
+    Ok((out.value.to_f64(), grads(py, out.grad)))
+}
+
+/// Mean SSIM of each of the `(B, H, W)` float32 image pairs `a`, `b` (Gaussian window `taps`, constants
+/// `c1`, `c2`) and, with `with_grad`, `(∂/∂a, ∂/∂b)` of each image's value (else None).
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+fn ssim_f32<'py>(
+    py: Python<'py>,
+    a: PyReadonlyArray1<'py, f32>,
+    b: PyReadonlyArray1<'py, f32>,
+    shape: (usize, usize, usize),
     taps: PyReadonlyArray1<'py, f32>,
-) -> PyResult<Bound<'py, PyArray1<f32>>> {
-    correlate(py, x, planes, height, width, taps)
+    c1: f64,
+    c2: f64,
+    with_grad: bool,
+) -> PyResult<(Bound<'py, PyArray1<f32>>, Grads<'py, f32>)> {
+    ssim_any(py, a, b, shape, taps, c1, c2, with_grad)
 }
 
-/// `correlate_valid_f32` in float64.
+/// `ssim_f32` in float64.
 #[pyfunction]
-fn correlate_valid_f64<'py>(
+#[allow(clippy::too_many_arguments)]
+fn ssim_f64<'py>(
     py: Python<'py>,
-    x: PyReadonlyArray1<'py, f64>,
-    planes: usize,
-    height: usize,
-    width: usize,
+    a: PyReadonlyArray1<'py, f64>,
+    b: PyReadonlyArray1<'py, f64>,
+    shape: (usize, usize, usize),
     taps: PyReadonlyArray1<'py, f64>,
-) -> PyResult<Bound<'py, PyArray1<f64>>> {
-    correlate(py, x, planes, height, width, taps)
+    c1: f64,
+    c2: f64,
+    with_grad: bool,
+) -> PyResult<(Bound<'py, PyArray1<f64>>, Grads<'py, f64>)> {
+    ssim_any(py, a, b, shape, taps, c1, c2, with_grad)
+}
+
+/// The relief prior of `(B, H, W)` float32 rendered depth and opacity (`crate::loss::relief`) and, with
+/// `with_grad`, `(∂/∂depth, ∂/∂alpha)` (else None).
+#[pyfunction]
+fn depth_variation_f32<'py>(
+    py: Python<'py>,
+    depth: PyReadonlyArray1<'py, f32>,
+    alpha: PyReadonlyArray1<'py, f32>,
+    shape: (usize, usize, usize),
+    min_alpha: f64,
+    with_grad: bool,
+) -> PyResult<(f64, Grads<'py, f32>)> {
+    relief_any(py, depth, alpha, shape, min_alpha, with_grad)
+}
+
+/// `depth_variation_f32` in float64.
+#[pyfunction]
+fn depth_variation_f64<'py>(
+    py: Python<'py>,
+    depth: PyReadonlyArray1<'py, f64>,
+    alpha: PyReadonlyArray1<'py, f64>,
+    shape: (usize, usize, usize),
+    min_alpha: f64,
+    with_grad: bool,
+) -> PyResult<(f64, Grads<'py, f64>)> {
+    relief_any(py, depth, alpha, shape, min_alpha, with_grad)
 }
 
 pub(crate) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
-    m.add_function(wrap_pyfunction!(correlate_valid_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(correlate_valid_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(ssim_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(ssim_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(depth_variation_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(depth_variation_f64, m)?)?;
     Ok(())
 }

@@ -2,7 +2,9 @@
 
 ``Ê = L(Î_end) − L(Î_start)`` with ``L = log(I + eps)`` (paper eq. 9) or the reference's
 ``linlog(255·I)``; ``L = (1−λ)·L_event(E, Ê) + λ·(1 − SSIM(Î_start, Î_end))``, with ``L_event`` the L1
-(paper eq. 10) or squared (reference code) error, averaged over the valid pixels.
+(paper eq. 10) or squared (reference code) error, averaged over the valid pixels. The SSIM term and the
+relief prior on the rendered depth (``loss.depth_tv``) run in the Rust core, their gradients in the same
+pass (their torch form, the tests' reference: :mod:`evgs.slam.loss_torch`).
 """
 
 from __future__ import annotations
@@ -11,12 +13,10 @@ import math
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from evgs import _core
 from evgs.config import LossConfig
-from evgs.slam.depth import mean_depth
 
 
 def linlog(x: Tensor, threshold: float = 20.0) -> Tensor:
@@ -39,51 +39,49 @@ def predicted_events(start: Tensor, end: Tensor, cfg: LossConfig) -> Tensor:
     return log_intensity(end, cfg) - log_intensity(start, cfg)
 
 
-def _gaussian_kernel(size: int, sigma: float, dtype: torch.dtype) -> Tensor:
+def gaussian_window(size: int, sigma: float, dtype: torch.dtype) -> Tensor:
+    """The SSIM window's normalised 1-D Gaussian taps."""
     x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
     k = torch.exp(-(x**2) / (2 * sigma**2))
     return (k / k.sum()).to(dtype)
 
 
-def _correlate_valid(x: Tensor, k: Tensor) -> Tensor:
-    """Separable "valid" correlation of the last two axes with the 1-D kernel ``k`` (no autograd), in
-    the Rust core (``evgs._core.correlate_valid_*``): the same arithmetic as torch's ``mul`` then
-    ``add_(alpha=k[i])`` per tap, bit for bit, without 44 small ops' dispatch and OpenMP barriers, which
-    took a quarter of the motion search's time on two cores (docs/ablations.md §68)."""
-    *lead, height, width = x.shape
-    correlate = {torch.float32: _core.correlate_valid_f32, torch.float64: _core.correlate_valid_f64}
-    if x.dtype not in correlate or x.device.type != "cpu":
-        raise ValueError(f"blur: CPU float32 or float64 tensors only, got {x.dtype} on {x.device}")
-    planes = math.prod(lead)
-    out = correlate[x.dtype](
-        x.detach().contiguous().view(-1).numpy(),
-        planes,
-        height,
-        width,
-        k.detach().to(device="cpu", dtype=x.dtype).contiguous().numpy(),
-    )
-    return torch.from_numpy(out).view(*lead, height - len(k) + 1, width - len(k) + 1)
+def _numpy(t: Tensor):
+    """A flat numpy view of ``t``'s values (a copy only if it is not contiguous)."""
+    return t.detach().contiguous().view(-1).numpy()
 
 
-class _BlurValid(torch.autograd.Function):
-    """``_correlate_valid`` with its adjoint as the backward (a full correlation with the flipped
-    kernel). On the CPU, torch's conv2d with a 1×11 single-channel kernel, and above all its backward,
-    cost ~20× more than fused multiply-adds, and torch's own loop of them 2.4× the Rust core's."""
+def _kernel(kind: str, *tensors: Tensor):
+    """The Rust kernel ``_core.<kind>_f32`` or ``_f64`` for the tensors' common dtype."""
+    dtype = tensors[0].dtype
+    if dtype not in (torch.float32, torch.float64) or any(
+        t.dtype != dtype or t.device.type != "cpu" for t in tensors
+    ):
+        got = ", ".join(f"{t.dtype} on {t.device}" for t in tensors)
+        raise ValueError(f"{kind}: CPU float32 or float64 tensors of one dtype only, got {got}")
+    return getattr(_core, f"{kind}_{'f32' if dtype == torch.float32 else 'f64'}")
+
+
+class _Ssim(torch.autograd.Function):
+    """Mean SSIM per image by the Rust core (``src/loss/ssim.rs``), which computes the gradient in the
+    same pass when one is needed: torch spent 36 ms on a 640×480 pair's SSIM and its autograd, most of
+    it in the dispatch of about a hundred small element-wise ops (docs/ablations.md §81)."""
 
     @staticmethod
-    def forward(ctx, x: Tensor, k: Tensor) -> Tensor:
-        ctx.save_for_backward(k)
-        return _correlate_valid(x, k)
+    def forward(ctx, a: Tensor, b: Tensor, k: Tensor, c1: float, c2: float) -> Tensor:
+        with_grad = bool(ctx.needs_input_grad[0] or ctx.needs_input_grad[1])
+        values, grads = _kernel("ssim", a, b, k)(
+            _numpy(a), _numpy(b), tuple(a.shape), _numpy(k), c1, c2, with_grad
+        )
+        if grads is not None:
+            ctx.save_for_backward(*(torch.from_numpy(g).view(a.shape) for g in grads))
+        return torch.from_numpy(values)
 
     @staticmethod
-    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:
-        (k,) = ctx.saved_tensors
-        m = len(k) - 1
-        return _correlate_valid(F.pad(grad, (m, m, m, m)), k.flip(0)), None
-
-
-def _blur_valid(x: Tensor, k: Tensor) -> Tensor:
-    return _BlurValid.apply(x, k)
+    def backward(ctx, grad: Tensor):
+        ga, gb = ctx.saved_tensors
+        g = grad[:, None, None]
+        return g * ga, g * gb, None, None, None
 
 
 def ssim(a: Tensor, b: Tensor, window: int = 11, sigma: float = 1.5, data_range: float = 1.0) -> Tensor:
@@ -92,6 +90,7 @@ def ssim(a: Tensor, b: Tensor, window: int = 11, sigma: float = 1.5, data_range:
     Only windows that lie wholly inside the image count (a "valid" convolution): no padding values
     leak into the statistics. This equals scikit-image's ``structural_similarity(gaussian_weights=True,
     sigma=σ, use_sample_covariance=False)``, which crops the same border before averaging.
+    Differentiable in ``a`` and ``b`` (CPU float32 or float64).
     """
     if a.shape != b.shape or a.ndim != 3:
         raise ValueError(
@@ -99,13 +98,8 @@ def ssim(a: Tensor, b: Tensor, window: int = 11, sigma: float = 1.5, data_range:
         )
     if min(a.shape[-2:]) < window:
         raise ValueError(f"ssim: images {tuple(a.shape[-2:])} are smaller than the {window}-px window")
-    k = _gaussian_kernel(window, sigma, a.dtype).to(a.device)
-    x = _blur_valid(torch.stack([a, b, a * a, b * b, a * b], 1), k)
-    mu_a, mu_b, aa, bb, ab = x.unbind(1)
-    var_a, var_b, cov = aa - mu_a**2, bb - mu_b**2, ab - mu_a * mu_b
-    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
-    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
-    return s.mean(dim=(-2, -1))
+    k = gaussian_window(window, sigma, a.dtype)
+    return _Ssim.apply(a, b, k, (0.01 * data_range) ** 2, (0.03 * data_range) ** 2)
 
 
 def valid_mask(
@@ -141,9 +135,30 @@ def total_variation(img: Tensor) -> Tensor:
     return dx + dy
 
 
+class _DepthVariation(torch.autograd.Function):
+    """The relief prior by the Rust core (``src/loss/relief.rs``), its gradient in the same pass: in
+    torch its boolean indexing and median cost 43 ms per 640×480 pair of views (docs/ablations.md §81)."""
+
+    @staticmethod
+    def forward(ctx, depth: Tensor, alpha: Tensor, min_alpha: float) -> Tensor:
+        with_grad = bool(ctx.needs_input_grad[0] or ctx.needs_input_grad[1])
+        value, grads = _kernel("depth_variation", depth, alpha)(
+            _numpy(depth), _numpy(alpha), tuple(depth.shape), min_alpha, with_grad
+        )
+        if grads is not None:
+            ctx.save_for_backward(*(torch.from_numpy(g).view(depth.shape) for g in grads))
+        return torch.tensor(value, dtype=depth.dtype)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        gd, ga = ctx.saved_tensors
+        return grad * gd, grad * ga, None
+
+
 def depth_variation(depth: Tensor, alpha: Tensor, min_alpha: float = 0.5) -> Tensor:
-    """Mean ``|∂x D̄| + |∂y D̄|`` of the mean depth ``D̄ = D / α`` (B, H, W), relative to its median, over
-    neighbouring pixels that are both opaque (``α > min_alpha``); 0 where none are.
+    """Mean ``|∂x D̄| + |∂y D̄|`` of the mean depth ``D̄ = D / α`` (B, H, W), relative to its median over
+    the batch's opaque pixels (``α > min_alpha``), over neighbouring pixels that are both opaque; 0 where
+    none are. Differentiable in ``depth`` and ``alpha`` (CPU float32 or float64).
 
     A prior on the map's relief (``loss.depth_tv``). From a narrow baseline the events fix a target's
     outline, not its relief, and a map free to put each Gaussian at any depth predicts parallax the
@@ -151,15 +166,12 @@ def depth_variation(depth: Tensor, alpha: Tensor, min_alpha: float = 0.5) -> Ten
     against depth, docs/ablations.md §14, §35). Relative, so the map's arbitrary scale does not weigh;
     L1, so a true step in depth (a panel's edge in front of the bus) costs only its height.
     """
-    mean, opaque = mean_depth(depth, alpha, min_alpha)
-    if not bool(opaque.any()):
-        return depth.sum() * 0
-    # the median of this very tensor, not median_depth's own copy: one graph, so the gradient's sums run
-    # in one order (a last-bit change here turns the default run's search to another motion, §42)
-    mean = mean / mean[opaque].median()
-    dx = (mean[..., :, 1:] - mean[..., :, :-1]).abs()[opaque[..., :, 1:] & opaque[..., :, :-1]]
-    dy = (mean[..., 1:, :] - mean[..., :-1, :]).abs()[opaque[..., 1:, :] & opaque[..., :-1, :]]
-    return sum((d.mean() for d in (dx, dy) if d.numel()), depth.sum() * 0)
+    if depth.shape != alpha.shape or depth.ndim != 3:
+        raise ValueError(
+            f"depth variation: need depth and alpha (B, H, W) of one shape, got {tuple(depth.shape)}, "
+            f"{tuple(alpha.shape)}"
+        )
+    return _DepthVariation.apply(depth, alpha, min_alpha)
 
 
 @dataclass(frozen=True)
