@@ -34,3 +34,41 @@ impl Drop for TempDir {
         let _ = std::fs::remove_dir_all(&self.0);
     }
 }
+
+/// `len` values uniform in [0, 1) from a seeded xorshift generator (the same on every machine).
+pub fn uniform(len: usize, seed: u64) -> Vec<f64> {
+    let mut s = 0x9e37_79b9_7f4a_7c15_u64 ^ seed.wrapping_mul(0x2545_f491_4f6c_dd1d);
+    (0..len)
+        .map(|_| {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 11) as f64 / (1u64 << 53) as f64
+        })
+        .collect()
+}
+
+/// Asserts that `grads[i][p]` is the central difference (step `eps`, within `tol`) of `value` along
+/// element `p` of input `i`, for every input and every `p` in `at`.
+pub fn assert_gradient(
+    value: impl Fn(&[Vec<f64>]) -> f64,
+    inputs: &[Vec<f64>],
+    grads: &[&[f64]],
+    at: impl IntoIterator<Item = usize> + Clone,
+    eps: f64,
+    tol: f64,
+) {
+    for (i, grad) in grads.iter().enumerate() {
+        for p in at.clone() {
+            let (mut lo, mut hi) = (inputs.to_vec(), inputs.to_vec());
+            lo[i][p] -= eps;
+            hi[i][p] += eps;
+            let fd = (value(&hi) - value(&lo)) / (2.0 * eps);
+            assert!(
+                (fd - grad[p]).abs() < tol,
+                "input {i}, element {p}: {fd} by differences, {} analytic",
+                grad[p]
+            );
+        }
+    }
+}

@@ -81,24 +81,13 @@ pub fn correlate_line_adjoint<T: Real>(src: &[T], taps: &[T], padded: &mut Vec<T
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn pseudo_random(len: usize, seed: u64) -> Vec<f64> {
-        let mut s = 0x9e37_79b9_7f4a_7c15_u64 ^ seed;
-        (0..len)
-            .map(|_| {
-                s ^= s << 13;
-                s ^= s >> 7;
-                s ^= s << 17;
-                (s >> 11) as f64 / (1u64 << 53) as f64
-            })
-            .collect()
-    }
+    use crate::test_util::uniform;
 
     #[test]
     fn a_line_matches_the_definition_to_the_last_bit() {
         let taps = [0.1, 0.2, 0.4, 0.2, 0.1];
         let (stride, len) = (3, 37); // two register blocks and a tail
-        let src = pseudo_random(len + (taps.len() - 1) * stride, 1);
+        let src = uniform(len + (taps.len() - 1) * stride, 1);
         let mut out = vec![0.0; len];
         correlate_line(&src, stride, &taps, &mut out);
         for (j, &o) in out.iter().enumerate() {
@@ -111,8 +100,8 @@ mod tests {
     fn the_adjoint_satisfies_the_inner_product_identity() {
         // ⟨K x, y⟩ = ⟨x, Kᵀ y⟩ for an asymmetric kernel.
         let taps = [0.5, -0.25, 0.125, 1.0];
-        let x = pseudo_random(20, 2);
-        let y = pseudo_random(17, 3);
+        let x = uniform(20, 2);
+        let y = uniform(17, 3);
         let mut kx = vec![0.0; 17];
         correlate_line(&x, 1, &taps, &mut kx);
         let mut kty = vec![0.0; 20];

@@ -168,6 +168,7 @@ fn lower_median<T: Real>(values: &[T], keep: &[T]) -> Option<(T, usize)> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_util::{assert_gradient, uniform};
 
     fn shape(planes: usize, height: usize, width: usize) -> Planes {
         Planes { planes, height, width }
@@ -211,27 +212,11 @@ mod tests {
     fn gradient_matches_central_differences() {
         let (planes, h, w) = (2, 5, 6);
         let n = planes * h * w;
-        let mut s = 7u64;
-        let mut rnd = || {
-            s ^= s << 13;
-            s ^= s >> 7;
-            s ^= s << 17;
-            (s >> 11) as f64 / (1u64 << 53) as f64
-        };
-        let alpha: Vec<f64> = (0..n).map(|_| 0.55 + 0.45 * rnd()).collect();
-        let depth: Vec<f64> = alpha.iter().map(|a| (2.0 + rnd()) * a).collect();
+        let alpha: Vec<f64> = uniform(n, 7).iter().map(|u| 0.55 + 0.45 * u).collect();
+        let depth: Vec<f64> = alpha.iter().zip(uniform(n, 8)).map(|(a, u)| (2.0 + u) * a).collect();
         let shp = shape(planes, h, w);
         let (gd, ga) = depth_variation(&depth, &alpha, shp, 0.5, true).unwrap().grad.unwrap();
-        let value = |d: &[f64], a: &[f64]| depth_variation(d, a, shp, 0.5, false).unwrap().value;
-        let eps = 1e-7;
-        for p in 0..n {
-            for (which, g) in [(0, &gd), (1, &ga)] {
-                let (mut lo, mut hi) = ([depth.clone(), alpha.clone()], [depth.clone(), alpha.clone()]);
-                lo[which][p] -= eps;
-                hi[which][p] += eps;
-                let fd = (value(&hi[0], &hi[1]) - value(&lo[0], &lo[1])) / (2.0 * eps);
-                assert!((fd - g[p]).abs() < 1e-6, "pixel {p}, input {which}: {fd} vs {}", g[p]);
-            }
-        }
+        let value = |x: &[Vec<f64>]| depth_variation(&x[0], &x[1], shp, 0.5, false).unwrap().value;
+        assert_gradient(value, &[depth, alpha], &[&gd, &ga], 0..n, 1e-7, 1e-6);
     }
 }

@@ -238,6 +238,7 @@ fn terms<T: Real>(ma: T, mb: T, sa: T, sb: T, sab: T, c1: T, c2: T) -> (T, T, T,
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_util::{assert_gradient, uniform};
 
     fn gaussian(n: usize, sigma: f64) -> Vec<f64> {
         let half = (n - 1) as f64 / 2.0;
@@ -247,15 +248,12 @@ mod tests {
         k.into_iter().map(|v| v / sum).collect()
     }
 
+    /// A smooth pattern with noise on it, in [0.2, 1).
     fn smooth_noise(len: usize, seed: u64) -> Vec<f64> {
-        let mut s = 0x2545_f491_4f6c_dd1d_u64 ^ seed;
-        (0..len)
-            .map(|i| {
-                s ^= s << 13;
-                s ^= s >> 7;
-                s ^= s << 17;
-                0.5 + 0.3 * ((i as f64) * 0.37).sin() + 0.2 * ((s >> 11) as f64 / (1u64 << 53) as f64)
-            })
+        uniform(len, seed)
+            .iter()
+            .enumerate()
+            .map(|(i, u)| 0.5 + 0.3 * ((i as f64) * 0.37).sin() + 0.2 * u)
             .collect()
     }
 
@@ -310,17 +308,8 @@ mod tests {
         let (a, b) = (smooth_noise(h * w, 3), smooth_noise(h * w, 4));
         let win = SsimWindow { taps: &k, c1: 1e-4, c2: 9e-4 };
         let (ga, gb) = ssim(&a, &b, shape, &win, true).unwrap().grad.unwrap();
-        let value = |a: &[f64], b: &[f64]| ssim(a, b, shape, &win, false).unwrap().values[0];
-        let eps = 1e-6;
-        for p in [0, 7, 3 * w + 4, 6 * w + 7, h * w - 1] {
-            for (x, g) in [(0, &ga), (1, &gb)] {
-                let (mut lo, mut hi) = ([a.clone(), b.clone()], [a.clone(), b.clone()]);
-                lo[x][p] -= eps;
-                hi[x][p] += eps;
-                let fd = (value(&hi[0], &hi[1]) - value(&lo[0], &lo[1])) / (2.0 * eps);
-                assert!((fd - g[p]).abs() < 1e-8, "pixel {p} of image {x}: {fd} vs {}", g[p]);
-            }
-        }
+        let value = |x: &[Vec<f64>]| ssim(&x[0], &x[1], shape, &win, false).unwrap().values[0];
+        assert_gradient(value, &[a, b], &[&ga, &gb], [0, 7, 3 * w + 4, 6 * w + 7, h * w - 1], 1e-6, 1e-8);
     }
 
     #[test]
