@@ -276,6 +276,48 @@ def test_lm_windows_are_drawn_once_per_frame_and_level(synth, monkeypatch):
         config("tracking.lm_windows=-1")
 
 
+def test_lm_on_fixed_windows_keeps_its_linearisation_and_tracks_to_the_same_bits(synth, monkeypatch):
+    """On fixed windows (``tracking.lm_windows``) LM keeps the forward-mode linearisation of the step it
+    accepted (or of the increment a rejected step failed to leave): one pass per step instead of that
+    pass and a plain render, with the very knot that rendering everything again gives."""
+    from evgs.slam import pose_solver
+
+    _, scene = synth
+    k = 4
+    start = torch.as_tensor(scene.poses[k + 1]) @ se3_exp(
+        torch.tensor([0.05, -0.04, 0.03, 0.02, -0.03, 0.02]).double()
+    )
+    cfg = config(
+        "tracking.solver=lm", "tracking.num_opti_steps=12", "tracking.lm_windows=2", "economy.coarse_factor=2"
+    )
+    passes = {"render": 0, "render_pose_jvp": 0}
+
+    def counted(name):
+        fn = getattr(pose_solver, name)
+
+        def wrapper(*args, **kwargs):
+            passes[name] += 1
+            return fn(*args, **kwargs)
+
+        return wrapper
+
+    for name in passes:
+        monkeypatch.setattr(pose_solver, name, counted(name))
+    knots, counts = [], []
+    for keep in (True, False):
+        monkeypatch.setattr(pose_solver, "KEEP_LINEARISATION", keep)
+        passes.update(render=0, render_pose_jvp=0)
+        state = gt_state(synth, cfg, k + 1)
+        record = track(state, k, pose=start)
+        knots.append(state.traj.knots()[k + 1])
+        counts.append((record.iterations, dict(passes)))
+    assert torch.equal(knots[0], knots[1])
+    (kept_its, kept), (its, fresh) = counts
+    assert kept_its == its and kept["render"] == 0 and fresh["render"] > 0
+    # one pass per step's trial, and one at each of the two levels' first step (their windows are new)
+    assert kept["render_pose_jvp"] <= its + 2 < fresh["render_pose_jvp"] + fresh["render"]
+
+
 def test_lm_analytic_jacobian_matches_central_differences_of_the_residuals(synth):
     """``tracking.lm_jacobian = "analytic"``: the residuals at the increment equal :func:`residuals`'s,
     and their Jacobian (the trajectory's tangents through the rasterizer's forward mode) matches central

@@ -58,6 +58,10 @@ from evgs.slam.windows import Windows, scaled_camera
 # torch.func.jacfwd took 40 % of an LM step to differentiate it, twelve separate calls 20 %.
 VIEW_STEP = 1e-6
 MAX_STEP = 100.0  # longest accepted step per coordinate, in central-difference steps (0.1 rad at 1e-3)
+# On fixed windows (tracking.lm_windows) keep the analytic linearisation of the step that was accepted, or
+# of the increment a rejected step failed to leave, instead of rendering it again (the tests turn it off
+# to check that the kept one is the very linearisation a fresh pass gives).
+KEEP_LINEARISATION = True
 
 
 @dataclass
@@ -237,6 +241,10 @@ def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None =
     coarse_end = int(econ.coarse_fraction * spec.iterations) if econ.coarse_factor > 1 else 0
     t0, n_events, loss, stopped, it = time.perf_counter(), 0, float("nan"), False, -1
     fixed: dict[int, Windows] = {}  # tracking.lm_windows: this frame's windows at each resolution level
+    # With KEEP_LINEARISATION the trial is linearised too: one forward-mode pass per step instead of that
+    # pass and a plain render (their colours are the same to the bit).
+    keep = KEEP_LINEARISATION and bool(tc.lm_windows) and tc.lm_jacobian == "analytic"
+    kept: tuple[int, Residuals] | None = None
     for it in range(spec.iterations):
         factor = econ.coarse_factor if it < coarse_end else 1
         if not tc.lm_windows:
@@ -245,10 +253,14 @@ def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None =
             win = fixed[factor]
         else:
             win = fixed[factor] = data.windows(sampler, tc.lm_windows, factor)
-        if tc.lm_jacobian == "analytic":
+        if kept is not None and kept[0] == factor:
+            res = kept[1]
+        elif tc.lm_jacobian == "analytic":
             res = linearised(state, knot, delta, variants, win, factor, spec.span, unit)
         else:
             res = residuals(state, knot, delta + variants, win, factor, spec.span, unit)
+        if keep:
+            kept = (factor, res)
         mask = valid_mask(res.alpha[0, 0], res.alpha[0, 1], tc.mask_border // factor, tc.mask_alpha)
         if cfg.loss.event_mask_threshold >= 0:
             mask &= event_mask(win.frames, cfg.loss.event_mask_threshold)
@@ -279,8 +291,12 @@ def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None =
         cost0 += float(delta @ prior_h @ delta) / rows
         step = -torch.linalg.solve(hess + lam * torch.diag(hess.diagonal()) + 1e-12 * torch.eye(6), grad)
         cost1 = float("inf")  # a non-finite or implausibly long step (a near-singular system) is rejected
+        trial = None
         if bool(torch.isfinite(step).all()) and float((step.abs() / eps).max()) <= MAX_STEP:
-            trial = residuals(state, knot, (delta + step)[None], win, factor, spec.span, unit)
+            if keep:
+                trial = linearised(state, knot, delta + step, variants, win, factor, spec.span, unit)
+            else:
+                trial = residuals(state, knot, (delta + step)[None], win, factor, spec.span, unit)
             cost1 = float(pointwise_error(trial.events[0][mask].double(), kind).mean())
             for weight, name, used in meters:
                 q = getattr(trial, name)
@@ -288,6 +304,8 @@ def lm_track(state: SlamState, spec: StageSpec, reporter: StageReporter | None =
             cost1 += float((delta + step) @ prior_h @ (delta + step)) / rows
         if cost1 < cost0:
             delta, lam, loss = delta + step, max(lam / 3, 1e-7), cost1
+            if keep and trial is not None:
+                kept = (factor, trial)
             converged = bool((step.abs() < tc.lm_tolerance * eps).all())
         else:
             lam, loss, converged = lam * 4, cost0, lam > 1e6
