@@ -426,8 +426,11 @@ def test_search_sets_the_init_knots_and_records_its_choice(synth):
     start_from(state, found.best)
     m = state.num_init_chunks()
     assert record.stage == "search" and record.note.startswith("best of ")
-    chosen = record.note.split(": ")[1]
+    chosen, then = record.note.split(": ", 1)[1].split("; then ")
     assert state.history[-1] is record and chosen == found.best.name
+    # The two runners-up with their scores: how close the choice was.
+    (_, s1), (_, s2) = sorted(found.tried, key=lambda t: t[1])[1:3]
+    assert then.count(", ") == 1 and then.endswith(f"{s2:.5f}") and f"{s1:.5f}" in then
     # Every motion scored, the best first (the branches of init.branches take them in this order).
     assert [h.name for h in found.ranked] == [name for name, _ in sorted(found.tried, key=lambda t: t[1])]
     with torch.no_grad():

@@ -44,10 +44,17 @@ def search(state: SlamState, reporter: StageReporter | None = None) -> tuple[Sea
         time.perf_counter() - t0, 0, False, len(state.gaussians),
         note=f"best of {len(found.tried)} motions"
         + (f", {len(found.finals)} refitted longer" if found.finals else "")
-        + f": {found.best.name}",
+        + f": {found.best.name}; then {runners_up(found)}",
     )  # fmt: skip
     state.history.append(record)
     return found, record
+
+
+def runners_up(found: SearchResult, n: int = 2) -> str:
+    """The next ``n`` motions after the winner with their scores (the finalists' longer refits where
+    there are any): how close the start's choice was, which decides a run (docs/ablations.md §81)."""
+    ranked = found.finals or sorted(found.tried, key=lambda named: named[1])
+    return ", ".join(f"{name} {score:.5f}" for name, score in ranked[1 : n + 1]) or "none"
 
 
 def start_from(state: SlamState, hyp: Hypothesis) -> None:
