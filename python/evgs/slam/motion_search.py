@@ -52,7 +52,8 @@ noise, so on an approach it adds a spurious rotation that tracking carries on (d
 
 Two measured options, off by default (docs/ablations.md §9): ``init.search_smooth`` refits on a fixed
 schedule without densification or pruning, so that the score changes smoothly with the motion (by
-default scores of motions 2 % apart differ by up to 10 %); ``init.search_range_weight`` adds the range
+default scores of motions 2 % apart differ by up to 10 %; swirl_good's config turns it on, where it
+ranks the turn's full rate above its half on every seed, §82); ``init.search_range_weight`` adds the range
 meter's term (:mod:`evgs.slam.range_prior`) to the score. ``scale.rate_weight`` adds the meter's closing
 rate to it as to every stage: it needs no map, so it sizes an approach even where the refitted maps leave
 the image centre empty (docking_low, docs/ablations.md §28).
