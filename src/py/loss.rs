@@ -50,65 +50,57 @@ fn relief_any<'py, T: Real + numpy::Element>(
     Ok((out.value.to_f64(), grads(py, out.grad)))
 }
 
-/// Mean SSIM of each of the `(B, H, W)` float32 image pairs `a`, `b` (Gaussian window `taps`, constants
-/// `c1`, `c2`) and, with `with_grad`, `(∂/∂a, ∂/∂b)` of each image's value (else None).
-#[pyfunction]
-#[allow(clippy::too_many_arguments)]
-fn ssim_f32<'py>(
-    py: Python<'py>,
-    a: PyReadonlyArray1<'py, f32>,
-    b: PyReadonlyArray1<'py, f32>,
-    shape: (usize, usize, usize),
-    taps: PyReadonlyArray1<'py, f32>,
-    c1: f64,
-    c2: f64,
-    with_grad: bool,
-) -> PyResult<(Bound<'py, PyArray1<f32>>, Grads<'py, f32>)> {
-    ssim_any(py, a, b, shape, taps, c1, c2, with_grad)
+/// One monomorphic `#[pyfunction]` pair per element type: pyo3 exports no generics, and the two types'
+/// wrappers differ in nothing else.
+macro_rules! typed_bindings {
+    ($t:ty, $ssim:ident, $relief:ident, $ssim_doc:literal, $relief_doc:literal) => {
+        #[doc = $ssim_doc]
+        #[pyfunction]
+        #[allow(clippy::too_many_arguments)]
+        fn $ssim<'py>(
+            py: Python<'py>,
+            a: PyReadonlyArray1<'py, $t>,
+            b: PyReadonlyArray1<'py, $t>,
+            shape: (usize, usize, usize),
+            taps: PyReadonlyArray1<'py, $t>,
+            c1: f64,
+            c2: f64,
+            with_grad: bool,
+        ) -> PyResult<(Bound<'py, PyArray1<$t>>, Grads<'py, $t>)> {
+            ssim_any(py, a, b, shape, taps, c1, c2, with_grad)
+        }
+
+        #[doc = $relief_doc]
+        #[pyfunction]
+        fn $relief<'py>(
+            py: Python<'py>,
+            depth: PyReadonlyArray1<'py, $t>,
+            alpha: PyReadonlyArray1<'py, $t>,
+            shape: (usize, usize, usize),
+            min_alpha: f64,
+            with_grad: bool,
+        ) -> PyResult<(f64, Grads<'py, $t>)> {
+            relief_any(py, depth, alpha, shape, min_alpha, with_grad)
+        }
+    };
 }
 
-/// `ssim_f32` in float64.
-#[pyfunction]
-#[allow(clippy::too_many_arguments)]
-fn ssim_f64<'py>(
-    py: Python<'py>,
-    a: PyReadonlyArray1<'py, f64>,
-    b: PyReadonlyArray1<'py, f64>,
-    shape: (usize, usize, usize),
-    taps: PyReadonlyArray1<'py, f64>,
-    c1: f64,
-    c2: f64,
-    with_grad: bool,
-) -> PyResult<(Bound<'py, PyArray1<f64>>, Grads<'py, f64>)> {
-    ssim_any(py, a, b, shape, taps, c1, c2, with_grad)
-}
-
-/// The relief prior of `(B, H, W)` float32 rendered depth and opacity (`crate::loss::relief`) and, with
-/// `with_grad`, `(∂/∂depth, ∂/∂alpha)` (else None).
-#[pyfunction]
-fn depth_variation_f32<'py>(
-    py: Python<'py>,
-    depth: PyReadonlyArray1<'py, f32>,
-    alpha: PyReadonlyArray1<'py, f32>,
-    shape: (usize, usize, usize),
-    min_alpha: f64,
-    with_grad: bool,
-) -> PyResult<(f64, Grads<'py, f32>)> {
-    relief_any(py, depth, alpha, shape, min_alpha, with_grad)
-}
-
-/// `depth_variation_f32` in float64.
-#[pyfunction]
-fn depth_variation_f64<'py>(
-    py: Python<'py>,
-    depth: PyReadonlyArray1<'py, f64>,
-    alpha: PyReadonlyArray1<'py, f64>,
-    shape: (usize, usize, usize),
-    min_alpha: f64,
-    with_grad: bool,
-) -> PyResult<(f64, Grads<'py, f64>)> {
-    relief_any(py, depth, alpha, shape, min_alpha, with_grad)
-}
+typed_bindings!(
+    f32,
+    ssim_f32,
+    depth_variation_f32,
+    "Mean SSIM of each of the `(B, H, W)` float32 image pairs `a`, `b` (Gaussian window `taps`, constants \
+     `c1`, `c2`) and, with `with_grad`, `(∂/∂a, ∂/∂b)` of each image's value (else None).",
+    "The relief prior of `(B, H, W)` float32 rendered depth and opacity (`crate::loss::relief`) and, with \
+     `with_grad`, `(∂/∂depth, ∂/∂alpha)` (else None)."
+);
+typed_bindings!(
+    f64,
+    ssim_f64,
+    depth_variation_f64,
+    "`ssim_f32` in float64.",
+    "`depth_variation_f32` in float64."
+);
 
 pub(crate) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(ssim_f32, m)?)?;
