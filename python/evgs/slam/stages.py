@@ -51,10 +51,10 @@ def search(state: SlamState, reporter: StageReporter | None = None) -> tuple[Sea
 
 
 def runners_up(found: SearchResult, n: int = 2) -> str:
-    """The next ``n`` motions after the winner with their scores (the finalists' longer refits where
-    there are any): how close the start's choice was, which decides a run (docs/ablations.md §81)."""
-    ranked = found.finals or sorted(found.tried, key=lambda named: named[1])
-    return ", ".join(f"{name} {score:.5f}" for name, score in ranked[1 : n + 1]) or "none"
+    """The next ``n`` motions of the search's ranking with their scores (a finalist's from its longer
+    refit): how close the start's choice was, which decides a run (docs/ablations.md §81)."""
+    scores = dict(found.tried) | dict(found.finals)
+    return ", ".join(f"{h.name} {scores[h.name]:.5f}" for h in found.ranked[1 : n + 1]) or "none"
 
 
 def start_from(state: SlamState, hyp: Hypothesis) -> None:
