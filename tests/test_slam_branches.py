@@ -12,12 +12,14 @@ import torch
 pytest.importorskip("evgs.render")
 
 from evgs.config import ConfigError, load_config  # noqa: E402
+from evgs.slam import branches  # noqa: E402
 from evgs.slam.branches import branch_hypotheses, branch_score, run_branches  # noqa: E402
 from evgs.slam.lie import se3_inverse, se3_log  # noqa: E402
 from evgs.slam.metric_scale import first_surface  # noqa: E402
 from evgs.slam.motion_search import Hypothesis  # noqa: E402
+from evgs.slam.pipeline import initial_gaussians  # noqa: E402
 from evgs.slam.stages import initialize, start_from, step_chunk  # noqa: E402
-from evgs.slam.state import StageRecord  # noqa: E402
+from evgs.slam.state import StageRecord, stage_seed  # noqa: E402
 from slam_synth import gt_state, make_sequence, search_state  # noqa: E402
 
 FRAMES = 2
@@ -28,8 +30,8 @@ def synth(tmp_path_factory):
     return make_sequence(tmp_path_factory.mktemp("seq") / "synth")
 
 
-def state(synth):
-    return search_state(synth[0], f"init.branch_frames={FRAMES}", "init.num_opti_steps_for_init=100")
+def state(synth, *sets: str):
+    return search_state(synth[0], f"init.branch_frames={FRAMES}", "init.num_opti_steps_for_init=100", *sets)
 
 
 def truth(synth, m: int) -> Hypothesis:
@@ -67,6 +69,80 @@ def test_the_branch_that_explains_its_chunks_best_goes_on_as_if_alone(synth):
     assert {"branch0/init", "branch1/init", "branch0/track", "branch1/map"} <= stages
 
 
+def test_the_tracking_score_is_the_mean_loss_of_the_frames_each_branch_tracked(synth):
+    s = state(synth, "init.branch_score=tracking")
+    m = s.num_init_chunks()
+    true = truth(synth, m)
+    kept = run_branches(s, [Hypothesis("reversed", -true.twist), true], lambda r: None)
+    record = kept.history[-1]
+    assert record.note.startswith(
+        f"kept truth of 2 (mean tracking loss on chunks {m}–{m + FRAMES - 1}: reversed"
+    )
+    tracked = [r.loss for r in kept.history if r.stage == "track"]
+    assert len(tracked) == FRAMES
+    assert record.loss == branch_score(kept, m + FRAMES) == pytest.approx(np.mean(tracked), rel=1e-12)
+    # A branch that tracked nothing, or lost a frame, never wins.
+    assert branch_score(state(synth, "init.branch_score=tracking"), m) == float("inf")
+    last_track = next(r for r in reversed(kept.history) if r.stage == "track")
+    kept.history.append(dataclasses.replace(last_track, loss=float("nan")))
+    assert branch_score(kept, m + FRAMES) == float("inf")
+
+
+def test_restarts_run_the_kept_motion_again_from_other_seedings_and_keep_the_best(synth):
+    sets = ("init.branch_score=tracking", "init.branch_restarts=3")
+    s = state(synth, *sets)
+    m = s.num_init_chunks()
+    true = truth(synth, m)
+
+    def reseed(generator: torch.Generator):
+        return initial_gaussians(s.cfg.gaussians, s.data, m, generator)
+
+    with pytest.raises(ValueError, match="needs a reseed function"):
+        run_branches(s, [true], lambda r: None)
+    notes: list[StageRecord] = []
+    kept = run_branches(s, [Hypothesis("reversed", -true.twist), true], notes.append, reseed=reseed)
+    record = kept.history[-1]
+    assert (
+        record.note.startswith("kept truth") and " of 4 (" in record.note and "; its restarts " in record.note
+    )
+    stages = {r.stage for r in notes}
+    assert {"branch0/init", "branch1/track", "restart1/init", "restart2/track"} <= stages
+    # Each restart tracked the truth's motion from its own seeding: a score of its own.
+    scores = [float(x) for x in record.note.split("; its restarts ")[1].rstrip(")").split(", ")]
+    truth_score = float(record.note.split("truth ")[-1].split(";")[0])
+    assert len({truth_score, *scores}) == 3
+    assert record.loss == branch_score(kept, m + FRAMES) == pytest.approx(min(truth_score, *scores), abs=5e-6)
+    # Deterministic: the same call gives the same run.
+    hyps = [Hypothesis("reversed", -true.twist), true]
+    again = run_branches(state(synth, *sets), hyps, lambda r: None, reseed=reseed)
+    assert torch.equal(again.traj.knots(), kept.traj.knots())
+    assert again.history[-1].note == record.note
+
+
+def test_a_restart_that_scores_best_goes_on(synth, monkeypatch):
+    s = state(synth, "init.branch_restarts=2")
+    m = s.num_init_chunks()
+
+    def reseed(generator: torch.Generator):
+        return initial_gaussians(s.cfg.gaussians, s.data, m, generator)
+
+    monkeypatch.setattr(branches, "branch_score", lambda st, n: 0.0 if st.branch == "restart1" else 1.0)
+    kept = run_branches(s, [truth(synth, m)], lambda r: None, reseed=reseed)
+    assert kept.history[-1].note.startswith("kept truth, restart 1 of 2 (loss on chunks 0–")
+    assert kept.branch == ""
+    # It is the run from restart 1's seeding on its own.
+    alone = state(synth, "init.branch_restarts=2")
+    alone.generator = torch.Generator().manual_seed(stage_seed(s.cfg.seed, "seeding", 1))
+    alone.gaussians = reseed(alone.generator)
+    start_from(alone, truth(synth, m))
+    initialize(alone)
+    alone.position.initialized, alone.position.next_chunk = True, m
+    for _ in range(FRAMES):
+        step_chunk(alone, lambda r: None)
+    assert torch.equal(kept.traj.knots(), alone.traj.knots())
+    assert torch.equal(kept.gaussians["means"], alone.gaussians["means"])
+
+
 def test_the_range_score_is_the_spread_of_the_meter_against_the_map(synth):
     seq, scene = synth
     n = len(scene.frames_us) - 1
@@ -102,6 +178,20 @@ def test_branch_settings_are_checked():
         load_config("synthetic/tiny", ["init.branches=2", "init.motion_search=false"])
     with pytest.raises(ConfigError, match="branch_score"):
         load_config("synthetic/tiny", ["init.branch_score=loss"])
+    with pytest.raises(ConfigError, match="init.branch_restarts must be >= 1"):
+        load_config("synthetic/tiny", ["init.branch_restarts=0"])
+    with pytest.raises(ConfigError, match="init.branch_restarts > 1 needs init.motion_search"):
+        load_config("synthetic/tiny", ["init.branch_restarts=2", "init.motion_search=false"])
+    with pytest.raises(ConfigError, match="needs init.branch_frames >= 1"):
+        load_config(
+            "synthetic/tiny",
+            [
+                "init.branches=2",
+                "init.motion_search=true",
+                "init.branch_score=tracking",
+                "init.branch_frames=0",
+            ],
+        )
 
 
 @pytest.mark.parametrize("train_knots", [True, False])

@@ -79,8 +79,9 @@ class InitConfig:
     search_meter_advance: bool
     branches: int
     branch_frames: int
-    branch_score: Literal["events", "range"]
+    branch_score: Literal["events", "range", "tracking"]
     branch_directions: bool
+    branch_restarts: int
 
 
 @dataclass(frozen=True)
@@ -366,6 +367,14 @@ def _check_ranges(cfg: Config, source: str) -> None:
         problems.append("init.branches must be >= 1 (1 = off) and init.branch_frames >= 0")
     elif cfg.init.branches > 1 and not cfg.init.motion_search:
         problems.append("init.branches > 1 needs init.motion_search = true (branches start from its best)")
+    elif cfg.init.branch_restarts < 1:
+        problems.append("init.branch_restarts must be >= 1 (1 = the kept branch is not run again)")
+    elif cfg.init.branch_restarts > 1 and not cfg.init.motion_search:
+        problems.append("init.branch_restarts > 1 needs init.motion_search = true (restarts run its best)")
+    elif max(cfg.init.branches, cfg.init.branch_restarts) > 1 and (
+        cfg.init.branch_score == "tracking" and cfg.init.branch_frames < 1
+    ):
+        problems.append("init.branch_score = 'tracking' needs init.branch_frames >= 1 (the frames it scores)")
     if cfg.mapping.replay_every < 0 or cfg.mapping.replay_every == 1:
         problems.append("mapping.replay_every must be 0 (off) or >= 2 (1 would leave no window of its own)")
     if cfg.tracking.span_frames < 1:

@@ -187,8 +187,12 @@ def start(state: SlamState, note: Callable[[StageRecord], None], reporter: Stage
         found, record = search(state, reporter)
         note(record)
         hyps = branch_hypotheses(found.ranked, cfg.init.branches, cfg.init.branch_directions)
-    if len(hyps) > 1:
-        adopt(state, run_branches(state, hyps, note, reporter))
+    if len(hyps) > 1 or cfg.init.branch_restarts > 1:
+
+        def reseed(generator: torch.Generator) -> Gaussians:
+            return initial_gaussians(cfg.gaussians, state.data, state.num_init_chunks(), generator)
+
+        adopt(state, run_branches(state, hyps, note, reporter, reseed=reseed))
         return
     if hyps:
         start_from(state, hyps[0])

@@ -23,7 +23,7 @@ from evgs.slam.windows import EventData
 if TYPE_CHECKING:
     from evgs.slam.metric_scale import ScaleEstimate
 
-STAGES = ("init", "track", "map", "gba", "final", "search", "branch", "rate")
+STAGES = ("init", "track", "map", "gba", "final", "search", "branch", "rate", "seeding")
 
 
 def stage_seed(seed: int, stage: str, frame: int) -> int:
