@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import dataclasses
+from functools import partial
 
 import numpy as np
 import pytest
@@ -17,7 +18,7 @@ from evgs.slam.branches import branch_hypotheses, branch_score, run_branches  # 
 from evgs.slam.lie import se3_inverse, se3_log  # noqa: E402
 from evgs.slam.metric_scale import first_surface  # noqa: E402
 from evgs.slam.motion_search import Hypothesis  # noqa: E402
-from evgs.slam.pipeline import initial_gaussians  # noqa: E402
+from evgs.slam.pipeline import seeded_map  # noqa: E402
 from evgs.slam.stages import initialize, start_from, step_chunk  # noqa: E402
 from evgs.slam.state import StageRecord, stage_seed  # noqa: E402
 from slam_synth import gt_state, make_sequence, search_state  # noqa: E402
@@ -93,9 +94,7 @@ def test_restarts_run_the_kept_motion_again_from_other_seedings_and_keep_the_bes
     s = state(synth, *sets)
     m = s.num_init_chunks()
     true = truth(synth, m)
-
-    def reseed(generator: torch.Generator):
-        return initial_gaussians(s.cfg.gaussians, s.data, m, generator)
+    reseed = partial(seeded_map, s)
 
     with pytest.raises(ValueError, match="needs a reseed function"):
         run_branches(s, [true], lambda r: None)
@@ -122,9 +121,7 @@ def test_restarts_run_the_kept_motion_again_from_other_seedings_and_keep_the_bes
 def test_a_restart_that_scores_best_goes_on(synth, monkeypatch):
     s = state(synth, "init.branch_restarts=2")
     m = s.num_init_chunks()
-
-    def reseed(generator: torch.Generator):
-        return initial_gaussians(s.cfg.gaussians, s.data, m, generator)
+    reseed = partial(seeded_map, s)
 
     monkeypatch.setattr(branches, "branch_score", lambda st, n: 0.0 if st.branch == "restart1" else 1.0)
     kept = run_branches(s, [truth(synth, m)], lambda r: None, reseed=reseed)

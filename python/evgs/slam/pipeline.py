@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 import torch
@@ -81,9 +82,11 @@ def initial_gaussians(
     return gaussians
 
 
-def seeded_map(state: SlamState) -> Gaussians:
-    """The map as :func:`new_state` seeded it (the same random draws), for refits that start afresh."""
-    generator = torch.Generator().manual_seed(state.cfg.seed)
+def seeded_map(state: SlamState, generator: torch.Generator | None = None) -> Gaussians:
+    """The map as :func:`new_state` seeded it (the same random draws), for refits that start afresh; or
+    as ``generator`` seeds it (the branches' restarts)."""
+    if generator is None:
+        generator = torch.Generator().manual_seed(state.cfg.seed)
     return initial_gaussians(state.cfg.gaussians, state.data, state.num_init_chunks(), generator)
 
 
@@ -188,11 +191,7 @@ def start(state: SlamState, note: Callable[[StageRecord], None], reporter: Stage
         note(record)
         hyps = branch_hypotheses(found.ranked, cfg.init.branches, cfg.init.branch_directions)
     if len(hyps) > 1 or cfg.init.branch_restarts > 1:
-
-        def reseed(generator: torch.Generator) -> Gaussians:
-            return initial_gaussians(cfg.gaussians, state.data, state.num_init_chunks(), generator)
-
-        adopt(state, run_branches(state, hyps, note, reporter, reseed=reseed))
+        adopt(state, run_branches(state, hyps, note, reporter, reseed=partial(seeded_map, state)))
         return
     if hyps:
         start_from(state, hyps[0])
