@@ -197,6 +197,9 @@ def test_range_checks_name_the_keys():
     for floor in ("-0.1", "1.5"):
         with pytest.raises(ConfigError, match=r"tracking.velocity_prior_floor must be in \[0, 1\]"):
             load_config(overrides=[f"tracking.velocity_prior_floor={floor}"])
+    for order in ("0", "5"):
+        with pytest.raises(ConfigError, match="trajectory.smoothing_order must be 1–4"):
+            load_config(overrides=[f"trajectory.smoothing_order={order}"])
     with pytest.raises(ConfigError, match="tracking.velocity_prior_frames must be >= 0"):
         load_config(overrides=["tracking.velocity_prior_frames=-1"])
     with pytest.raises(ConfigError, match="loss.depth_tv must be >= 0"):

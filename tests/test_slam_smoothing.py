@@ -1,5 +1,5 @@
 """The fixed-interval smoother over the tracked positions: its cost minimised (autograd), its null space,
-its frequency response, and the trajectory's rotations left alone."""
+its frequency response, at the prior's orders 2 and 3, and the trajectory's rotations left alone."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 from evgs.slam.lie import se3_exp
-from evgs.slam.smoothing import second_differences, smooth_positions, smooth_trajectory
+from evgs.slam.smoothing import divided_differences, smooth_positions, smooth_trajectory
 from evgs.slam.trajectory import Trajectory
 
 D = torch.float64
@@ -19,36 +19,54 @@ def uneven_times(n: int, seed: int = 0) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(steps)])
 
 
-def cost(p: torch.Tensor, p_hat: torch.Tensor, t: torch.Tensor, tau: float) -> torch.Tensor:
-    """The module's cost written out term by term, in float64 (the reference the solver must minimise)."""
+def cost(p: torch.Tensor, p_hat: torch.Tensor, t: torch.Tensor, tau: float, order: int) -> torch.Tensor:
+    """The module's cost written out from the divided-difference recursion, in float64 (the reference
+    the solver must minimise)."""
+    d, span = p, None
+    for j in range(1, order + 1):
+        span = t[j:] - t[:-j]
+        d = j * (d[1:] - d[:-1]) / span[:, None]
     h = t[1:] - t[:-1]
-    v = (p[1:] - p[:-1]) / h[:, None]
-    a = 2 * (v[1:] - v[:-1]) / (h[1:] + h[:-1])[:, None]
-    share = 0.5 * (h[1:] + h[:-1]) / h.mean()
-    return ((p - p_hat) ** 2).sum() + tau**4 * (share[:, None] * a**2).sum()
+    share = span / (order * h.mean())
+    return ((p - p_hat) ** 2).sum() + tau ** (2 * order) * (share[:, None] * d**2).sum()
 
 
-def test_second_differences_match_a_quadratic_exactly():
+def test_second_differences_are_the_acceleration():
+    """Order 2 is the acceleration ``2 / (h₀ + h₁) · ((p₊ − p)/h₁ − (p − p₋)/h₀)`` at each interior knot."""
     t = uneven_times(12)
-    # x(t) = 3t² − t + 2 has acceleration 6 everywhere, whatever the spacing
-    x = 3 * t**2 - t + 2
-    assert np.allclose(second_differences(t) @ x, 6.0, atol=1e-9)
+    x = np.random.default_rng(7).normal(size=12)
+    h = np.diff(t)
+    want = 2 / (h[:-1] + h[1:]) * ((x[2:] - x[1:-1]) / h[1:] - (x[1:-1] - x[:-2]) / h[:-1])
+    assert np.allclose(divided_differences(t, 2) @ x, want, rtol=1e-12)
 
 
-def test_smoothed_positions_minimise_the_cost():
+@pytest.mark.parametrize("order", [1, 2, 3, 4])
+def test_divided_differences_match_a_polynomial_exactly(order: int):
+    """The ``order``-th derivative of a polynomial of that degree, whatever the spacing: x(t) = c tᵐ + …
+    has ``m! c`` everywhere."""
+    t = uneven_times(14)
+    x = 3 * t**order - t ** (order - 1) + 2
+    want = 3.0 * np.prod(np.arange(1, order + 1))
+    assert divided_differences(t, order).shape == (14 - order, 14)
+    assert np.allclose(divided_differences(t, order) @ x, want, rtol=1e-7)
+
+
+@pytest.mark.parametrize("order", [2, 3])
+def test_smoothed_positions_minimise_the_cost(order: int):
     t = uneven_times(40, seed=1)
     rng = np.random.default_rng(2)
     p_hat = np.stack([np.sin(3 * t), np.cos(2 * t), t**2], 1) + 0.02 * rng.normal(size=(40, 3))
     tau = 0.2
-    p = torch.tensor(smooth_positions(t, p_hat, tau), dtype=D, requires_grad=True)
-    c = cost(p, torch.tensor(p_hat), torch.tensor(t), tau)
+    p = torch.tensor(smooth_positions(t, p_hat, tau, order), dtype=D, requires_grad=True)
+    c = cost(p, torch.tensor(p_hat), torch.tensor(t), tau, order)
     (grad,) = torch.autograd.grad(c, p)
-    assert float(grad.abs().max()) < 1e-9 * float(c.detach())
+    # the normal equations' condition number grows as (τ/h)²ᵐ: 1e-9 of the cost at order 2, 1e-8 at 3
+    assert float(grad.abs().max()) < 10.0 ** (order - 11) * float(c.detach())
     # and a finite step off the solution costs more, in every direction tried
     with torch.no_grad():
         for _ in range(5):
             step = torch.tensor(rng.normal(size=(40, 3)) * 1e-3)
-            assert float(cost(p + step, torch.tensor(p_hat), torch.tensor(t), tau)) > float(c.detach())
+            assert float(cost(p + step, torch.tensor(p_hat), torch.tensor(t), tau, order)) > float(c.detach())
 
 
 def test_constant_velocity_is_kept_and_noise_is_removed():
@@ -63,16 +81,28 @@ def test_constant_velocity_is_kept_and_noise_is_removed():
     assert np.array_equal(smooth_positions(t[:2], noisy[:2], 0.3), noisy[:2])
 
 
-@pytest.mark.parametrize(("period_over_tau", "kept"), [(2 * np.pi, 0.5), (60.0, 0.999), (1.5, 0.005)])
-def test_frequency_response_halves_a_period_of_two_pi_tau(period_over_tau: float, kept: float):
-    """Far from the ends, a sinusoid of period P keeps 1 / (1 + (2πτ/P)⁴) of its amplitude on uniform
-    frames (to the order of the frame step): half at P = 2πτ, as the docstring says."""
+def test_order_three_keeps_a_constant_acceleration():
+    """White noise on jerk: a constant acceleration is its null space (order 2 would bend it)."""
+    t = uneven_times(60, seed=8)
+    curve = np.outer(t**2, [0.4, -1.0, 0.2]) + np.outer(t, [0.5, -0.2, 1.0])
+    assert np.allclose(smooth_positions(t, curve, 0.3, order=3), curve, atol=1e-9)
+    assert not np.allclose(smooth_positions(t, curve, 0.3, order=2), curve, atol=1e-4)
+    assert np.array_equal(smooth_positions(t[:3], curve[:3], 0.3, order=3), curve[:3])
+
+
+@pytest.mark.parametrize("order", [2, 3])
+@pytest.mark.parametrize("period_over_tau", [2 * np.pi, 60.0, 1.5])
+def test_frequency_response_halves_a_period_of_two_pi_tau(period_over_tau: float, order: int):
+    """Far from the ends, a sinusoid of period P keeps 1 / (1 + (2πτ/P)²ᵐ) of its amplitude on uniform
+    frames (to the order of the frame step): half at P = 2πτ at either order, as the docstring says,
+    and the higher order keeps more of the slow motion and less of the fast."""
     tau, dt = 0.2, 0.002
     t = np.arange(6000) * dt
     x = np.sin(2 * np.pi * t / (period_over_tau * tau))
-    y = smooth_positions(t, np.stack([x, x, x], 1), tau)[:, 0]
+    y = smooth_positions(t, np.stack([x, x, x], 1), tau, order)[:, 0]
     mid = slice(2000, 4000)
     gain = (y[mid] @ x[mid]) / (x[mid] @ x[mid])
+    kept = 1 / (1 + (2 * np.pi / period_over_tau) ** (2 * order))
     assert gain == pytest.approx(kept, rel=0.02, abs=2e-3)
 
 
@@ -84,10 +114,10 @@ def test_smooth_trajectory_moves_positions_only():
     with torch.no_grad():
         traj.delta[3] = torch.tensor([0.01, 0.0, -0.02, 0.001, 0.0, 0.0], dtype=D)  # folded in first
     before = traj.knots().detach().clone()
-    moved = smooth_trajectory(traj, 0.1)
+    moved = smooth_trajectory(traj, 0.1, order=3)
     after = traj.knots().detach()
     assert torch.allclose(after[:, :3, :3], before[:, :3, :3], atol=1e-9)
-    want = smooth_positions(t_us * 1e-6, before[:, :3, 3].numpy(), 0.1)
+    want = smooth_positions(t_us * 1e-6, before[:, :3, 3].numpy(), 0.1, order=3)
     assert np.allclose(after[:, :3, 3].numpy(), want, atol=1e-12)
     assert moved == pytest.approx(float(np.linalg.norm(want - before[:, :3, 3].numpy(), axis=1).max()))
     assert float(traj.delta.detach().abs().max()) == 0.0
