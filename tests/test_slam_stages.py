@@ -503,6 +503,30 @@ def test_mapping_replays_the_chunks_before_its_window(synth, monkeypatch):
             config(f"mapping.replay_every={bad}")
 
 
+@pytest.mark.parametrize("hold", [False, True])
+def test_the_final_global_ba_holds_the_positions_when_asked(synth, hold: bool):
+    """``global_ba.final_hold_positions``: the final global BA turns the knots about their centres and
+    keeps where they are (to the rebase's rounding); the periodic global BAs move both either way."""
+    cfg = config("global_ba.num_opti_steps_final=15", "global_ba.num_opti_steps=15",
+                 f"global_ba.final_hold_positions={str(hold).lower()}")  # fmt: skip
+    for final in (True, False):
+        state = gt_state(synth, cfg, 5)
+        with torch.no_grad():
+            state.traj.base[1:] = state.traj.base[1:] @ se3_exp(
+                torch.tensor([0.02, 0, 0, 0, 0.01, 0], dtype=torch.float64)
+            )
+            before = state.traj.knots().clone()
+        global_ba(state, final=final)
+        after = state.traj.knots().detach()
+        moved = (after[1:, :3, 3] - before[1:, :3, 3]).norm(dim=-1)
+        turned = (after[1:, :3, :3] - before[1:, :3, :3]).abs().amax(dim=(-2, -1))
+        assert bool((turned > 1e-6).all())
+        if hold and final:
+            assert float(moved.max()) < 1e-12
+        else:
+            assert bool((moved > 1e-6).all())
+
+
 def test_global_ba_windows_reach_global_ba_max_n_winsize(synth, monkeypatch):
     """``global_ba.max_n_winsize`` lengthens the global BA's windows only; 0 keeps data.max_n_winsize."""
     cfg = config(

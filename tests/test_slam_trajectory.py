@@ -246,6 +246,31 @@ def test_frozen_knots_do_not_move_under_adam():
     assert not torch.allclose(k[3], T[3])
 
 
+@pytest.mark.parametrize("moves", ["position", "rotation"])
+def test_knots_move_only_what_the_stage_lets_them(moves: str):
+    """``set_trainable(..., "position")`` keeps a knot's rotation, ``"rotation"`` its centre (it turns
+    about itself); the other knots stay put either way."""
+    traj, T = make_traj()
+    traj.set_trainable([1, 2], moves)
+    opt = torch.optim.Adam([traj.delta], lr=1e-2)
+    target = torch.tensor([0.3, -0.2, 0.1], dtype=D)
+    for _ in range(5):
+        opt.zero_grad()
+        P = traj.pose_at([1500, 3000])
+        (P[:, :3, 3] - target).pow(2).sum().add(P[:, :3, 2].sub(target).pow(2).sum()).backward()
+        opt.step()
+    k = traj.knots().detach()
+    assert torch.equal(k[[0, 3]], T[[0, 3]])
+    kept, changed = (
+        ((slice(0, 3), slice(0, 3)), (slice(0, 3), 3))
+        if moves == "position"
+        else ((slice(0, 3), 3), (slice(0, 3), slice(0, 3)))
+    )
+    for i in (1, 2):
+        assert torch.allclose(k[i][kept], T[i][kept], atol=1e-12)
+        assert not torch.allclose(k[i][changed], T[i][changed], atol=1e-4)
+
+
 def test_append_predicts_by_constant_velocity_and_state_round_trips():
     step = se3_exp(torch.tensor([0.1, 0, 0.05, 0, 0.02, 0], dtype=D))
     traj = Trajectory(np.array([0, 100]), torch.stack([torch.eye(4, dtype=D), step]).numpy())

@@ -125,6 +125,7 @@ class GlobalBAConfig:
     max_n_winsize: int
     rate_check: float
     rate_check_steps: int
+    final_hold_positions: bool
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,7 @@ from evgs.slam.guards import blocker_mask, clamp_colors_
 from evgs.slam.loss import LossTerms, depth_variation, event_loss, event_term, total_variation, valid_mask
 from evgs.slam.state import SlamState, StageRecord
 from evgs.slam.strategy import DefaultStrategy, reset_opacity
+from evgs.slam.trajectory import KnotMotion
 from evgs.slam.windows import Windows, scaled_camera
 
 
@@ -45,7 +46,7 @@ class StageSpec:
     recent_knots: Sequence[int]  # cameras the near-camera guard protects
     train_gaussians: bool
     masked: bool = False  # tracking's border / low-alpha mask
-    turn_knots: bool = True  # False: the trainable knots move their positions only, their rotations held
+    knot_motion: KnotMotion = "pose"  # "position" / "rotation": the trainable knots change only that
     anchored: bool = False  # brightness anchor term
     lr_boost: float = 1.0  # every Adam rate starts this many times higher, decaying to 1× at the end
     tv_weight: float = 0.0  # weight of the renders' total variation (a prior on the map's appearance)
@@ -240,7 +241,7 @@ def run_stage(state: SlamState, spec: StageSpec, reporter: StageReporter | None 
     replay_sampler = None
     if spec.replay_span is not None and spec.replay_every > 0:
         replay_sampler = data.sampler(spec.replay_span, spec.seed + 1, spec.max_window)
-    traj.set_trainable(list(spec.trainable_knots), spec.turn_knots)
+    traj.set_trainable(list(spec.trainable_knots), spec.knot_motion)
     pose_opt = (
         torch.optim.Adam([traj.delta], lr=cfg.trajectory.pose_lr) if len(spec.trainable_knots) else None
     )

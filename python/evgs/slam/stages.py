@@ -70,7 +70,8 @@ def initialize(state: SlamState, reporter: StageReporter | None = None) -> Stage
         "init", _seq_frame(state, m), cfg.init.num_opti_steps_for_init, state.data.span(0, m),
         cfg.data.training_batch_size, stage_seed(cfg.seed, "init", m),
         range(1, m + 1) if cfg.init.train_knots else range(0), range(m + 1),
-        train_gaussians=True, lr_boost=cfg.init.lr_boost, turn_knots=cfg.init.train_knot_rotation,
+        train_gaussians=True, lr_boost=cfg.init.lr_boost,
+        knot_motion="pose" if cfg.init.train_knot_rotation else "position",
     )  # fmt: skip
     record = run_stage(state, spec, reporter)
     set_brightness_reference(state)
@@ -199,5 +200,6 @@ def global_ba(state: SlamState, final: bool, reporter: StageReporter | None = No
         stage_seed(cfg.seed, stage, n), range(1, n + 1), range(n + 1), train_gaussians=True, anchored=True,
         lr_boost=cfg.global_ba.lr_boost, tv_weight=cfg.global_ba.tv_weight,
         max_window=cfg.global_ba.max_n_winsize, early_stop=cfg.global_ba.final_early_stop or not final,
+        knot_motion="rotation" if final and cfg.global_ba.final_hold_positions else "pose",
     )  # fmt: skip
     return run_stage(state, spec, reporter)

@@ -63,6 +63,8 @@ def random_knots(n: int, sigma: float, generator: torch.Generator) -> Tensor:
 
 
 TRANSLATION = torch.tensor([True, True, True, False, False, False])  # the (v, ω) increment's position half
+KnotMotion = Literal["pose", "position", "rotation"]  # what a stage's trainable knots may change
+MOTION_MASKS = {"pose": torch.ones(6, dtype=torch.bool), "position": TRANSLATION, "rotation": ~TRANSLATION}
 
 
 class Trajectory(torch.nn.Module):
@@ -97,12 +99,12 @@ class Trajectory(torch.nn.Module):
         delta = torch.where(self.trainable, self.delta, torch.zeros_like(self.delta))
         return self.base @ se3_exp(delta)
 
-    def set_trainable(self, indices: slice | list[int] | Tensor | None, turns: bool = True) -> None:
-        """Only these knots (None = all) receive gradients; Python-style negative indices work. With
-        ``turns`` False they move their positions only: ``δ = (v, 0)`` translates a knot in its own frame
-        and keeps its rotation."""
+    def set_trainable(self, indices: slice | list[int] | Tensor | None, moves: KnotMotion = "pose") -> None:
+        """Only these knots (None = all) receive gradients; Python-style negative indices work. ``moves``
+        "position": ``δ = (v, 0)`` translates a knot in its own frame and keeps its rotation; "rotation":
+        ``δ = (0, ω)`` turns it about its own centre, which stays put."""
         mask = torch.zeros(len(self), 6, dtype=torch.bool)
-        mask[slice(None) if indices is None else indices] = True if turns else TRANSLATION
+        mask[slice(None) if indices is None else indices] = MOTION_MASKS[moves]
         self.trainable = mask
 
     @torch.no_grad()
