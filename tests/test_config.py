@@ -200,6 +200,8 @@ def test_range_checks_name_the_keys():
     for order in ("0", "5"):
         with pytest.raises(ConfigError, match="trajectory.smoothing_order must be 1–4"):
             load_config(overrides=[f"trajectory.smoothing_order={order}"])
+    with pytest.raises(ConfigError, match="trajectory.smoothing_end_fit must be >= 0"):
+        load_config(overrides=["trajectory.smoothing_end_fit=-1"])
     with pytest.raises(ConfigError, match="tracking.velocity_prior_frames must be >= 0"):
         load_config(overrides=["tracking.velocity_prior_frames=-1"])
     with pytest.raises(ConfigError, match="loss.depth_tv must be >= 0"):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 from evgs.slam.lie import se3_exp
-from evgs.slam.smoothing import divided_differences, smooth_positions, smooth_trajectory
+from evgs.slam.smoothing import divided_differences, end_extension, smooth_positions, smooth_trajectory
 from evgs.slam.trajectory import Trajectory
 
 D = torch.float64
@@ -121,3 +121,56 @@ def test_smooth_trajectory_moves_positions_only():
     assert np.allclose(after[:, :3, 3].numpy(), want, atol=1e-12)
     assert moved == pytest.approx(float(np.linalg.norm(want - before[:, :3, 3].numpy(), axis=1).max()))
     assert float(traj.delta.detach().abs().max()) == 0.0
+
+
+def test_end_extension_is_the_least_squares_polynomial():
+    """The fit through the knots within ``fit_s`` of the end (at least degree + 1 of them), against
+    float64 least squares on the Vandermonde matrix, evaluated past the end."""
+    t = uneven_times(30, seed=9)
+    p = np.random.default_rng(10).normal(size=(30, 3))
+    out = t[0] - np.array([0.12, 0.04])
+    n = int((t - t[0] <= 0.3).sum())
+    V = np.vander(t[:n] - t[0], 3, increasing=True)
+    coef = np.linalg.lstsq(V, p[:n], rcond=None)[0]
+    want = np.vander(out - t[0], 3, increasing=True) @ coef
+    assert np.allclose(end_extension(t, p, 0.3, 2, out), want, atol=1e-10)
+    # a span holding a single knot still fits through degree + 1 of them
+    V = np.vander(t[:3] - t[0], 3, increasing=True)
+    want = np.vander(out - t[0], 3, increasing=True) @ np.linalg.solve(V, p[:3])
+    assert np.allclose(end_extension(t, p, 0.0, 2, out), want, atol=1e-8)
+
+
+@pytest.mark.parametrize("order", [2, 3])
+def test_end_fit_keeps_the_priors_null_space(order: int):
+    """A polynomial of degree below the order is extended by itself, so it is kept exactly."""
+    t = uneven_times(50, seed=11)
+    curve = np.outer(t, [0.5, -0.2, 1.0]) + (order - 2) * np.outer(t**2, [0.4, -1.0, 0.2]) + 1.0
+    assert np.allclose(smooth_positions(t, curve, 0.3, order, end_fit=2.0), curve, atol=1e-8)
+
+
+def test_end_fit_is_the_same_backwards_in_time():
+    t = uneven_times(40, seed=12)
+    p = np.stack([np.sin(3 * t), np.cos(2 * t), t**3], 1)
+    p += 0.01 * np.random.default_rng(13).normal(size=p.shape)
+    forward = smooth_positions(t, p, 0.25, 3, end_fit=2.0)
+    backward = smooth_positions(-t[::-1], p[::-1], 0.25, 3, end_fit=2.0)[::-1]
+    assert np.allclose(forward, backward, atol=1e-9)
+
+
+def test_end_fit_keeps_the_swirls_ends_and_still_removes_noise():
+    """The simulated swirl (fastest at its ends, sideways): with the ends extended, the smoother moves
+    the true path's end knots far less at the same τ, and still removes most of a wander added to it."""
+    from evgs.sim.presets import preset
+    from evgs.sim.trajectory import Trajectory as SimTrajectory
+
+    c = preset("swirl_good")
+    t = np.arange(76) / 25.0
+    path = SimTrajectory(c.trajectory, c.distance, c.speed, c.duration, c.elevation_deg, c.azimuth_deg)
+    truth = path.positions(t)
+    natural = np.linalg.norm(smooth_positions(t, truth, 0.3, 3) - truth, axis=1)
+    ends = np.linalg.norm(smooth_positions(t, truth, 0.3, 3, end_fit=2.0) - truth, axis=1)
+    assert ends[[0, -1]].max() < 0.2 * natural[[0, -1]].min()
+    assert np.sqrt((ends**2).mean()) < 0.6 * np.sqrt((natural**2).mean())
+    wander = 0.03 * np.random.default_rng(14).normal(size=truth.shape)
+    err = np.linalg.norm(smooth_positions(t, truth + wander, 0.3, 3, end_fit=2.0) - truth, axis=1)
+    assert np.sqrt((err**2).mean()) < 0.5 * np.sqrt((np.linalg.norm(wander, axis=1) ** 2).mean())

@@ -49,6 +49,7 @@ class TrajectoryConfig:
     smoothness: float
     smoothing_time: float
     smoothing_order: int
+    smoothing_end_fit: float
 
 
 @dataclass(frozen=True)
@@ -334,6 +335,8 @@ def _check_ranges(cfg: Config, source: str) -> None:
         problems.append("trajectory.smoothing_time must be >= 0 (seconds; 0 = off)")
     if not 1 <= cfg.trajectory.smoothing_order <= 4:
         problems.append("trajectory.smoothing_order must be 1–4 (the derivative the smoother's prior is on)")
+    if cfg.trajectory.smoothing_end_fit < 0:
+        problems.append("trajectory.smoothing_end_fit must be >= 0 (in units of smoothing_time; 0 = off)")
     if not 0 <= cfg.scale.closing_min_explained <= 1:
         problems.append("scale.closing_min_explained must be in [0, 1]")
     if cfg.scale.source == "target_size" and cfg.scale.target_size <= 0:

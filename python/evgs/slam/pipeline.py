@@ -243,10 +243,13 @@ def run_slam(
             if cfg.global_ba.rate_check > 0:
                 note(check_rate(state, seeded_map(state), reporter))
             state.surface_scale = read_surface_scale(state)  # before the smoother: the map fits these cameras
-            tau, order = cfg.trajectory.smoothing_time, cfg.trajectory.smoothing_order
+            tc = cfg.trajectory
+            tau, order = tc.smoothing_time, tc.smoothing_order
             if tau > 0:
-                moved = smooth_trajectory(state.traj, tau, order)
-                say(run, log, f"smoothed the tracked positions (τ = {tau:g} s, order {order}): "
+                moved = smooth_trajectory(state.traj, tau, order, tc.smoothing_end_fit)
+                fit = tc.smoothing_end_fit
+                ends = f", ends extended by a fit over {fit:g} τ" if fit else ""
+                say(run, log, f"smoothed the tracked positions (τ = {tau:g} s, order {order}{ends}): "
                               f"moved {moved:.4f} at most")  # fmt: skip
             note(global_ba(state, final=True, reporter=reporter))
             state.position.finished = True
