@@ -18,7 +18,7 @@ from evgs.slam.branches import branch_hypotheses, branch_score, run_branches  # 
 from evgs.slam.lie import se3_inverse, se3_log  # noqa: E402
 from evgs.slam.metric_scale import first_surface  # noqa: E402
 from evgs.slam.motion_search import Hypothesis  # noqa: E402
-from evgs.slam.pipeline import seeded_map  # noqa: E402
+from evgs.slam.seeding import seeded_map  # noqa: E402
 from evgs.slam.stages import initialize, start_from, step_chunk  # noqa: E402
 from evgs.slam.state import StageRecord, stage_seed  # noqa: E402
 from slam_synth import gt_state, make_sequence, search_state  # noqa: E402

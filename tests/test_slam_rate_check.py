@@ -10,8 +10,8 @@ pytest.importorskip("evgs.render")
 
 from evgs.config import ConfigError, load_config  # noqa: E402
 from evgs.slam.lie import se3_exp, se3_inverse, se3_log  # noqa: E402
-from evgs.slam.pipeline import seeded_map  # noqa: E402
 from evgs.slam.rate_check import check_rate, parabola_vertex, rate_factors  # noqa: E402
+from evgs.slam.seeding import seeded_map  # noqa: E402
 from evgs.slam.trajectory import Trajectory, scaled_motion  # noqa: E402
 from slam_synth import make_sequence, search_state  # noqa: E402
 

@@ -17,8 +17,9 @@ from evgs.slam.guards import BrightnessAnchor  # noqa: E402
 from evgs.slam.lie import se3_exp, se3_inverse, se3_log  # noqa: E402
 from evgs.slam.loss import depth_variation, total_variation  # noqa: E402
 from evgs.slam.optimize import Convergence, StageSpec, loss_step, lr_boost, set_lr_boost  # noqa: E402
-from evgs.slam.pipeline import initial_gaussians, new_state, seeding_weights  # noqa: E402
+from evgs.slam.pipeline import new_state  # noqa: E402
 from evgs.slam.pose_solver import prior_curvature, prior_weight  # noqa: E402
+from evgs.slam.seeding import initial_gaussians, seeding_weights  # noqa: E402
 from evgs.slam.stages import global_ba, map_window, track  # noqa: E402
 from evgs.slam.state import SlamState  # noqa: E402
 from evgs.slam.trajectory import Trajectory  # noqa: E402

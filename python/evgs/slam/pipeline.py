@@ -19,22 +19,19 @@ import dataclasses
 from collections.abc import Callable
 from functools import partial
 
-import numpy as np
 import torch
-from scipy import ndimage
-from torch import Tensor
 
-from evgs.config import Config, GaussiansConfig
+from evgs.config import Config
 from evgs.eval.plots import plot_range_agreement
 from evgs.slam import checkpoint
 from evgs.slam.branches import branch_hypotheses, run_branches
-from evgs.slam.gaussians import Gaussians
 from evgs.slam.guards import BrightnessAnchor
 from evgs.slam.metric_scale import apply_scale, estimate_scale, range_agreement, read_surface_scale
 from evgs.slam.optimize import StageReporter
 from evgs.slam.range_prior import RangePrior
 from evgs.slam.rate_check import check_rate
 from evgs.slam.run_dir import RunDir
+from evgs.slam.seeding import initial_gaussians, seeded_map
 from evgs.slam.smoothing import smooth_trajectory
 from evgs.slam.stages import global_ba, initialize, search, start_from, step_chunk
 from evgs.slam.state import SlamState, StageRecord
@@ -52,58 +49,6 @@ def new_state(cfg: Config, data: EventData, first: int = 0) -> SlamState:
     traj = Trajectory(data.frames_us[: m + 1], knots, cfg.trajectory.interpolation)
     anchor = BrightnessAnchor(cfg.guards.brightness_weight)
     return SlamState(cfg, data, traj, gaussians, generator, anchor, range_prior=RangePrior.for_run(cfg, data))
-
-
-def initial_gaussians(
-    g: GaussiansConfig, data: EventData, m: int, generator: torch.Generator, first: int = 0
-) -> Gaussians:
-    """The map before initialization, seeded as ``gaussians.init_seeding`` says from chunks ``first`` to
-    ``first + m``; the camera of chunk ``first`` is near the identity, so its optical axis is +z."""
-    if g.init_seeding == "events":
-        span = data.span(first, first + m)
-        weights = seeding_weights(data.activity(span), g.init_min_events, g.init_fill_gap)
-        spread = g.init_depth_spread or g.bounding_size
-        depths = (g.init_depth - spread, g.init_depth + spread)
-        if depths[0] <= 0:
-            raise ValueError(
-                f"gaussians.init_seeding = 'events' needs init_depth ({g.init_depth:g}) > the depth spread "
-                f"({spread:g}; init_depth_spread, else bounding_size): the seeded depths must lie ahead"
-            )
-        return Gaussians.on_rays(
-            g.num_init, weights, data.camera, depths, g.init_opacity, g.init_color, generator, g.init_tilt_deg
-        )
-    if g.init_tilt_deg:
-        raise ValueError(
-            "gaussians.init_tilt_deg tilts the 'events' seeding; the 'box' seeding has no slab to tilt"
-        )
-    gaussians = Gaussians.random(g.num_init, g.bounding_size, g.init_opacity, g.init_color, generator)
-    with torch.no_grad():
-        gaussians["means"][:, 2] += g.init_depth
-    return gaussians
-
-
-def seeded_map(state: SlamState, generator: torch.Generator | None = None) -> Gaussians:
-    """The map as :func:`new_state` seeded it (the same random draws), for refits that start afresh; or
-    as ``generator`` seeds it (the branches' restarts)."""
-    if generator is None:
-        generator = torch.Generator().manual_seed(state.cfg.seed)
-    return initial_gaussians(state.cfg.gaussians, state.data, state.num_init_chunks(), generator)
-
-
-def seeding_weights(counts: Tensor, min_events: int, fill_gap: int) -> Tensor:
-    """Per-pixel seeding weights from the init chunks' event counts: pixels with at least ``min_events``
-    events weigh their count; with ``fill_gap`` > 0 the pixels they enclose once gaps of up to that many
-    pixels are closed weigh ``min_events`` (a uniform face's events are only at its edges, so the face
-    would stay empty; it is smooth, so few and larger Gaussians cover it)."""
-    active = counts >= min_events
-    weights = torch.where(active, counts, 0.0)
-    if fill_gap > 0:
-        mask = active.numpy()
-        radius = (fill_gap + 1) // 2
-        closed = ndimage.binary_closing(mask, np.ones((3, 3), bool), iterations=radius, border_value=0)
-        inside = ndimage.binary_fill_holes(closed) & ~mask
-        weights[torch.from_numpy(inside)] = float(min_events)
-    return weights
 
 
 def describe(record: StageRecord) -> str:
