@@ -41,6 +41,18 @@ def truth(synth, m: int) -> Hypothesis:
     return Hypothesis("truth", se3_log(se3_inverse(P[0]) @ P[m]) / m)
 
 
+def branch_scores(note: str) -> dict[str, float]:
+    """The branches' scores in a branch record's note: ``... (mean tracking loss on chunks a–b: name
+    score, name score[; its restarts ...])``."""
+    listed = note.split(": ", 1)[1].split(";")[0].rstrip(")")
+    return {name: float(score) for name, score in (item.rsplit(" ", 1) for item in listed.split(", "))}
+
+
+def kept_name(note: str) -> str:
+    """The kept branch's name: ``kept NAME of N`` or ``kept NAME, restart k of N``."""
+    return note.removeprefix("kept ").split(" of ")[0].split(", restart ")[0]
+
+
 def test_the_branch_that_explains_its_chunks_best_goes_on_as_if_alone(synth):
     s = state(synth)
     m = s.num_init_chunks()
@@ -76,9 +88,11 @@ def test_the_tracking_score_is_the_mean_loss_of_the_frames_each_branch_tracked(s
     true = truth(synth, m)
     kept = run_branches(s, [Hypothesis("reversed", -true.twist), true], lambda r: None)
     record = kept.history[-1]
-    assert record.note.startswith(
-        f"kept truth of 2 (mean tracking loss on chunks {m}–{m + FRAMES - 1}: reversed"
-    )
+    assert f" of 2 (mean tracking loss on chunks {m}–{m + FRAMES - 1}: reversed " in record.note
+    # The lower score goes on. Over two tiny frames the truth and its reverse score within a few per cent,
+    # and which is lower depends on the CPU's bits (docs/ablations.md §86), so the test checks the rule.
+    scores = branch_scores(record.note)
+    assert set(scores) == {"reversed", "truth"} and kept_name(record.note) == min(scores, key=scores.get)
     tracked = [r.loss for r in kept.history if r.stage == "track"]
     assert len(tracked) == FRAMES
     assert record.loss == branch_score(kept, m + FRAMES) == pytest.approx(np.mean(tracked), rel=1e-12)
@@ -101,16 +115,17 @@ def test_restarts_run_the_kept_motion_again_from_other_seedings_and_keep_the_bes
     notes: list[StageRecord] = []
     kept = run_branches(s, [Hypothesis("reversed", -true.twist), true], notes.append, reseed=reseed)
     record = kept.history[-1]
-    assert (
-        record.note.startswith("kept truth") and " of 4 (" in record.note and "; its restarts " in record.note
-    )
+    assert " of 4 (" in record.note and "; its restarts " in record.note
     stages = {r.stage for r in notes}
     assert {"branch0/init", "branch1/track", "restart1/init", "restart2/track"} <= stages
-    # Each restart tracked the truth's motion from its own seeding: a score of its own.
+    # The restarts ran the best branch's motion again, each from its own seeding: a score of its own, and
+    # the lowest of the three went on.
     scores = [float(x) for x in record.note.split("; its restarts ")[1].rstrip(")").split(", ")]
-    truth_score = float(record.note.split("truth ")[-1].split(";")[0])
-    assert len({truth_score, *scores}) == 3
-    assert record.loss == branch_score(kept, m + FRAMES) == pytest.approx(min(truth_score, *scores), abs=5e-6)
+    branches_scored = branch_scores(record.note)
+    best = min(branches_scored, key=branches_scored.get)
+    assert kept_name(record.note) == best and len({branches_scored[best], *scores}) == 3
+    lowest = min(branches_scored[best], *scores)
+    assert record.loss == branch_score(kept, m + FRAMES) == pytest.approx(lowest, abs=5e-6)
     # Deterministic: the same call gives the same run.
     hyps = [Hypothesis("reversed", -true.twist), true]
     again = run_branches(state(synth, *sets), hyps, lambda r: None, reseed=reseed)
