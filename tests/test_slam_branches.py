@@ -13,14 +13,14 @@ import torch
 pytest.importorskip("evgs.render")
 
 from evgs.config import ConfigError, load_config  # noqa: E402
-from evgs.slam import branches  # noqa: E402
+from evgs.slam import branches, checkpoint  # noqa: E402
 from evgs.slam.branches import branch_hypotheses, branch_score, run_branches  # noqa: E402
 from evgs.slam.lie import se3_inverse, se3_log  # noqa: E402
 from evgs.slam.metric_scale import first_surface  # noqa: E402
 from evgs.slam.motion_search import Hypothesis  # noqa: E402
-from evgs.slam.seeding import seeded_map  # noqa: E402
+from evgs.slam.seeding import seeded_map, seeding_generator  # noqa: E402
 from evgs.slam.stages import initialize, start_from, step_chunk  # noqa: E402
-from evgs.slam.state import StageRecord, stage_seed  # noqa: E402
+from evgs.slam.state import StageRecord  # noqa: E402
 from slam_synth import gt_state, make_sequence, search_state  # noqa: E402
 
 FRAMES = 2
@@ -141,10 +141,15 @@ def test_a_restart_that_scores_best_goes_on(synth, monkeypatch):
     monkeypatch.setattr(branches, "branch_score", lambda st, n: 0.0 if st.branch == "restart1" else 1.0)
     kept = run_branches(s, [truth(synth, m)], lambda r: None, reseed=reseed)
     assert kept.history[-1].note.startswith("kept truth, restart 1 of 2 (loss on chunks 0–")
-    assert kept.branch == ""
+    assert kept.branch == "" and kept.seeding == 1
+    # A refit from scratch (the rate check) starts from restart 1's map, not the run's own, also resumed.
+    restart_map = reseed(seeding_generator(s.cfg.seed, 1))
+    assert not torch.equal(seeded_map(s)["means"], restart_map["means"])
+    for st in (kept, checkpoint.restore(checkpoint.snapshot(kept), kept.cfg, kept.data)):
+        assert st.seeding == 1 and torch.equal(seeded_map(st)["means"], restart_map["means"])
     # It is the run from restart 1's seeding on its own.
     alone = state(synth, "init.branch_restarts=2")
-    alone.generator = torch.Generator().manual_seed(stage_seed(s.cfg.seed, "seeding", 1))
+    alone.generator = seeding_generator(s.cfg.seed, 1)
     alone.gaussians = reseed(alone.generator)
     start_from(alone, truth(synth, m))
     initialize(alone)

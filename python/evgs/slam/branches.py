@@ -51,6 +51,7 @@ from evgs.slam.gaussians import Gaussians
 from evgs.slam.metric_scale import range_agreement
 from evgs.slam.motion_search import Hypothesis
 from evgs.slam.optimize import StageReporter, fixed_window_loss, range_penalty, range_unit
+from evgs.slam.seeding import seeding_generator
 from evgs.slam.stages import initialize, start_from, step_chunk
 from evgs.slam.state import SlamState, StageRecord, stage_seed
 
@@ -134,7 +135,7 @@ def run_branches(
         branch.branch = label
         if seeding:
             assert reseed is not None
-            branch.generator = torch.Generator().manual_seed(stage_seed(cfg.seed, "seeding", seeding))
+            branch.seeding, branch.generator = seeding, seeding_generator(cfg.seed, seeding)
             branch.gaussians = reseed(branch.generator)
 
         def tagged(record: StageRecord) -> None:

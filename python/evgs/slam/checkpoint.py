@@ -2,9 +2,10 @@
 
 Taken only between frames, where no optimizer or densification statistics are alive (every stage
 builds its own Adam and strategy, and the trajectory is rebased), so the state is the trajectory
-knots, the Gaussians, the random generator, the brightness reference, the position in the sequence
-and, once read, the first-surface scale (read before the final global BA: the final map reads
-another). Window samplers are re-seeded per stage from the run seed, so they need no state.
+knots, the Gaussians, the random generator, the brightness reference, the position in the sequence,
+the map's seeding (a refit from scratch redraws it) and, once read, the first-surface scale (read before
+the final global BA: the final map reads another). Window samplers are re-seeded per stage from the run
+seed, so they need no state.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ def snapshot(state: SlamState) -> dict:
         "history": [asdict(r) for r in state.history],
         "dropped_events": state.data.dropped,
         "surface_scale": None if state.surface_scale is None else asdict(state.surface_scale),
+        "seeding": state.seeding,
     }
 
 
@@ -77,4 +79,5 @@ def restore(snap: dict, cfg: Config, data: EventData) -> SlamState:
         range_prior=RangePrior.for_run(cfg, data),
         # .get: a checkpoint written before the key existed read the scale at the end (the fallback)
         surface_scale=None if snap.get("surface_scale") is None else ScaleEstimate(**snap["surface_scale"]),
+        seeding=snap.get("seeding", 0),  # .get: written before the key existed, the run's own seeding
     )

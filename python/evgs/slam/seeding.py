@@ -11,7 +11,7 @@ from torch import Tensor
 
 from evgs.config import GaussiansConfig
 from evgs.slam.gaussians import Gaussians
-from evgs.slam.state import SlamState
+from evgs.slam.state import SlamState, stage_seed
 from evgs.slam.windows import EventData
 
 
@@ -43,11 +43,18 @@ def initial_gaussians(
     return gaussians
 
 
+def seeding_generator(seed: int, seeding: int) -> torch.Generator:
+    """The generator of seeding ``seeding``: 0 is the run's own (:func:`new_state`'s, from ``seed``), j > 0
+    restart j's (``init.branch_restarts``)."""
+    return torch.Generator().manual_seed(stage_seed(seed, "seeding", seeding) if seeding else seed)
+
+
 def seeded_map(state: SlamState, generator: torch.Generator | None = None) -> Gaussians:
-    """The map as :func:`new_state` seeded it (the same random draws), for refits that start afresh; or
-    as ``generator`` seeds it (the branches' restarts)."""
+    """The map as ``state``'s seeding drew it (the same random draws), for refits that start afresh (the
+    rate check: a kept restart's refits start from that restart's map); or as ``generator`` draws it
+    (the branches' restarts)."""
     if generator is None:
-        generator = torch.Generator().manual_seed(state.cfg.seed)
+        generator = seeding_generator(state.cfg.seed, state.seeding)
     return initial_gaussians(state.cfg.gaussians, state.data, state.num_init_chunks(), generator)
 
 

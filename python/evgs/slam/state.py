@@ -72,6 +72,7 @@ class SlamState:
     range_prior: RangePrior | None = None  # the range meter's loss term (scale.range_weight > 0)
     surface_scale: ScaleEstimate | None = None  # the first-surface scale read before the final global BA
     branch: str = ""  # a branch of the run's start (evgs.slam.branches) names its diagnostics; "" = the run
+    seeding: int = 0  # whose draws seeded the map: 0 the run's own, j > 0 restart j's (evgs.slam.seeding)
 
     def num_init_chunks(self) -> int:
         """``m``: chunks of the initialization (fewer when the sequence is shorter)."""
