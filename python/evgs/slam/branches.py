@@ -32,8 +32,8 @@ kept branch goes on as if it had been the only one; the others' time is recorded
 
 ``init.branch_restarts`` then runs the kept branch's motion again from other random seedings of the map
 (the windows the same): started on the true orbit, swirl_good's seeds end anywhere from 1.2 to 4.3 %,
-and how well a seed's branch tracked its 40 frames already ranks them; the restart that tracked best
-goes on (docs/ablations.md §83).
+and how well a seed's branch tracked its frames already ranks them; the restart that tracked best goes
+on (docs/ablations.md §83; over 55 frames, not 40, it ranks swirl_good's seed 2 better, §89).
 """
 
 from __future__ import annotations
