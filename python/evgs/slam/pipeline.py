@@ -31,7 +31,7 @@ from evgs.slam.optimize import StageReporter
 from evgs.slam.range_prior import RangePrior
 from evgs.slam.rate_check import check_rate
 from evgs.slam.run_dir import RunDir
-from evgs.slam.seeding import initial_gaussians, seeded_map
+from evgs.slam.seeding import initial_gaussians, seeded_map, seeding_generator
 from evgs.slam.smoothing import smooth_trajectory
 from evgs.slam.stages import global_ba, initialize, search, start_from, step_chunk
 from evgs.slam.state import SlamState, StageRecord
@@ -42,7 +42,7 @@ from evgs.slam.windows import EventData
 def new_state(cfg: Config, data: EventData, first: int = 0) -> SlamState:
     """Random Gaussians in the bounding box and near-identity knots at the initialization frames; the
     Gaussians seeded from chunks ``first`` on (``benches/slam_oracle.py --start``; a run starts at 0)."""
-    generator = torch.Generator().manual_seed(cfg.seed)
+    generator = seeding_generator(cfg.seed, 0)
     m = min(cfg.init.num_frames, data.n_chunks)
     gaussians = initial_gaussians(cfg.gaussians, data, m, generator, first=first)
     knots = random_knots(m + 1, cfg.trajectory.init_pose_noise, generator)
