@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -10,8 +12,17 @@ pytest.importorskip("evgs.render")
 
 from evgs.config import ConfigError, load_config  # noqa: E402
 from evgs.slam.lie import se3_exp, se3_inverse, se3_log  # noqa: E402
-from evgs.slam.rate_check import check_rate, parabola_vertex, rate_factors  # noqa: E402
+from evgs.slam.motion_search import fit  # noqa: E402
+from evgs.slam.optimize import fixed_window_loss  # noqa: E402
+from evgs.slam.rate_check import (  # noqa: E402
+    SCORE_WINDOWS,
+    check_rate,
+    parabola_vertex,
+    rate_factors,
+    replica_seed,
+)
 from evgs.slam.seeding import seeded_map  # noqa: E402
+from evgs.slam.state import stage_seed  # noqa: E402
 from evgs.slam.trajectory import Trajectory, scaled_motion  # noqa: E402
 from slam_synth import make_sequence, search_state  # noqa: E402
 
@@ -85,3 +96,35 @@ def test_the_rate_check_needs_the_first_surface_read_at_the_end():
     load_config(overrides=[bad[0], "scale.source=none"])
     with pytest.raises(ConfigError, match="rate_check must be in"):
         load_config(overrides=["global_ba.rate_check=1.5"])
+
+
+def test_each_speed_scores_the_mean_of_its_seedings_refits(tmp_path):
+    """With two seedings a speed's score is the mean of the run's own refit and one from another seeding
+    and random streams, which scores differently (so it is another draw, not a repeat)."""
+    seq, scene = make_sequence(tmp_path / "synth")
+    P = torch.as_tensor(scene.poses)
+    truth = se3_inverse(P[:1]) @ P
+    steps, notes = 20, {}
+    for k in (1, 2):
+        sets = ["global_ba.rate_check=0.2", f"global_ba.rate_check_steps={steps}"]
+        state = search_state(seq, *sets, f"global_ba.rate_check_seedings={k}")
+        state.traj = Trajectory(scene.frames_us, truth)
+        record = check_rate(state, seeded_map(state))
+        assert record.iterations == 5 * steps * k
+        notes[k] = [float(x.split()[1].rstrip(",)")) for x in record.note.split("(scores ")[1].split("×")[1:]]
+    state = search_state(seq, "global_ba.rate_check=0.2")
+    s1 = replica_seed(state.cfg.seed, 1)
+    assert s1 != state.cfg.seed and replica_seed(state.cfg.seed, 0) == state.cfg.seed
+    other = dataclasses.replace(state, gaussians=seeded_map(state, torch.Generator().manual_seed(s1)))
+    span = state.data.span(0, len(scene.frames_us) - 1)
+    for f, one, two in zip(rate_factors(0.2), notes[1], notes[2], strict=True):
+        trial = fit(other, scaled_motion(truth, float(f)), None, steps, True, "rate", s1)
+        with torch.no_grad():
+            replica = fixed_window_loss(trial, span, stage_seed(state.cfg.seed, "rate", 0), SCORE_WINDOWS)
+        assert abs(replica - one) > 1e-5
+        assert two == pytest.approx((one + replica) / 2, abs=1.5e-5)
+
+
+def test_the_rate_check_needs_at_least_one_seeding():
+    with pytest.raises(ConfigError, match="rate_check_seedings >= 1"):
+        load_config(overrides=["global_ba.rate_check_seedings=0"])

@@ -126,6 +126,7 @@ class GlobalBAConfig:
     max_n_winsize: int
     rate_check: float
     rate_check_steps: int
+    rate_check_seedings: int
     final_hold_positions: bool
 
 
@@ -324,8 +325,10 @@ def _check_ranges(cfg: Config, source: str) -> None:
             "scale.range_weight, scale.rate_weight and init.search_range_weight must be >= 0 (0 = off)"
         )
     rc = cfg.global_ba
-    if not 0 <= rc.rate_check < 1 or rc.rate_check_steps < 1:
-        problems.append("global_ba.rate_check must be in [0, 1) (0 = off) and rate_check_steps >= 1")
+    if not 0 <= rc.rate_check < 1 or rc.rate_check_steps < 1 or rc.rate_check_seedings < 1:
+        problems.append(
+            "global_ba.rate_check must be in [0, 1) (0 = off), rate_check_steps and rate_check_seedings >= 1"
+        )
     if rc.rate_check > 0 and cfg.scale.source == "range" and cfg.scale.surface_read != "end":
         problems.append(
             "global_ba.rate_check moves the cameras after tracking: with scale.source = 'range' it needs "

@@ -176,26 +176,29 @@ def fit(
     steps: int | None = None,
     smooth: bool | None = None,
     stage: str = "search",
+    seed: int | None = None,
 ) -> SlamState:
     """A copy of ``state`` whose map was optimised for ``steps`` iterations (default
     ``init.search_steps``) on the frozen ``knots``, which cover the first ``len(knots) − 1`` chunks (a
     hypothesis' first ``init.search_frames`` + 1; the truth's, in ``benches/slam_oracle.py``; the
     tracked ones, in :mod:`evgs.slam.rate_check`); ``state`` itself is left as it was. ``smooth``
     (default ``init.search_smooth``) fits on the fixed schedule. Every fit of a given length draws the
-    same windows and random numbers, so scores differ by the knots alone."""
+    same windows and random numbers, so scores differ by the knots alone; ``seed`` (default the run's)
+    gives them other streams."""
     cfg, data = state.cfg, state.data
     m = len(knots) - 1
+    seed = cfg.seed if seed is None else seed
     trial = dataclasses.replace(
         state,
         traj=Trajectory(data.frames_us[: m + 1], knots, cfg.trajectory.interpolation),
         gaussians=type(state.gaussians).from_state(state.gaussians.state()),
-        generator=torch.Generator().manual_seed(stage_seed(cfg.seed, stage, m)),
+        generator=torch.Generator().manual_seed(stage_seed(seed, stage, m)),
         history=[],
     )
     steps = cfg.init.search_steps if steps is None else steps
     smooth = cfg.init.search_smooth if smooth is None else smooth
     spec = StageSpec(
-        stage, m, steps, data.span(0, m), cfg.data.training_batch_size, stage_seed(cfg.seed, stage, m), [],
+        stage, m, steps, data.span(0, m), cfg.data.training_batch_size, stage_seed(seed, stage, m), [],
         range(m + 1), train_gaussians=True, lr_boost=cfg.init.lr_boost, adaptive=not smooth,
     )  # fmt: skip
     run_stage(trial, spec, reporter)

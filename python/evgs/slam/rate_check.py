@@ -15,7 +15,9 @@ score changes smoothly with the factor), then its event term on fixed windows of
 score is noisy to a few per cent, and the scores rise more steeply below the best speed than above it
 (a least-squares parabola through all five is pulled towards the faster end), so the factor applied is
 the vertex of the parabola through the best factor and its two neighbours, within half a step of the
-best (docs/ablations.md §80).
+best (docs/ablations.md §80). With ``global_ba.rate_check_seedings`` = k each speed's score is the mean
+of k refits, the first from the run's seeding, the others from seedings and random streams of their own
+(:func:`replica_seed`), so that one refit's luck does not pick the speed (docs/ablations.md §91).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ import torch
 from evgs.slam.gaussians import Gaussians
 from evgs.slam.motion_search import fit
 from evgs.slam.optimize import StageReporter, fixed_window_loss
+from evgs.slam.seeding import seeded_map
 from evgs.slam.state import SlamState, StageRecord, stage_seed
 from evgs.slam.trajectory import scaled_motion
 
@@ -40,6 +43,12 @@ SCORE_WINDOWS = 16
 def rate_factors(r: float) -> np.ndarray:
     """The five speeds scored, as factors of the tracked one."""
     return 1.0 + r * np.array([-1.0, -0.5, 0.0, 0.5, 1.0])
+
+
+def replica_seed(seed: int, j: int) -> int:
+    """The seed of refit ``j`` of each speed: the run's own for ``j`` = 0, an independent stream of the
+    rate check's for ``j`` > 0 (it draws that refit's seeding of the map and its windows)."""
+    return seed if j == 0 else stage_seed(seed, "rate", j)
 
 
 def parabola_vertex(factors: np.ndarray, scores: np.ndarray) -> float:
@@ -55,30 +64,35 @@ def parabola_vertex(factors: np.ndarray, scores: np.ndarray) -> float:
 
 def check_rate(state: SlamState, seeded: Gaussians, reporter: StageReporter | None = None) -> StageRecord:
     """Score the tracked motion at each factor with ``seeded`` (the run's map as seeded) refitted to it,
-    and scale ``state``'s trajectory by :func:`parabola_vertex` of the scores; the run's map is left as
-    it is (the final global BA refits it to the new cameras)."""
+    and with ``global_ba.rate_check_seedings`` − 1 other seedings, and scale ``state``'s trajectory by
+    :func:`parabola_vertex` of the mean scores; the run's map is left as it is (the final global BA
+    refits it to the new cameras)."""
     t0 = time.perf_counter()
     cfg, data = state.cfg, state.data
+    gcfg = cfg.global_ba
     n = len(state.traj) - 1
     with torch.no_grad():
         knots = state.traj.knots().detach().clone()
-    factors = rate_factors(cfg.global_ba.rate_check)
+    factors = rate_factors(gcfg.rate_check)
     seed, span = stage_seed(cfg.seed, "rate", 0), data.span(0, n)
-    start = dataclasses.replace(state, gaussians=seeded)
+    seeds = [replica_seed(cfg.seed, j) for j in range(gcfg.rate_check_seedings)]
+    starts = [seeded] + [seeded_map(state, torch.Generator().manual_seed(s)) for s in seeds[1:]]
     scores = []
     for f in factors:
-        trial = fit(
-            start, scaled_motion(knots, float(f)), reporter, cfg.global_ba.rate_check_steps, True, "rate"
-        )
-        with torch.no_grad():
-            scores.append(fixed_window_loss(trial, span, seed, SCORE_WINDOWS))
+        replicas = []
+        for s, gaussians in zip(seeds, starts, strict=True):
+            start, motion = dataclasses.replace(state, gaussians=gaussians), scaled_motion(knots, float(f))
+            trial = fit(start, motion, reporter, gcfg.rate_check_steps, True, "rate", s)
+            with torch.no_grad():
+                replicas.append(fixed_window_loss(trial, span, seed, SCORE_WINDOWS))
+        scores.append(float(np.mean(replicas)))
     best = parabola_vertex(factors, np.array(scores))
     with torch.no_grad():
         state.traj.base.copy_(scaled_motion(knots, best))
         state.traj.delta.zero_()
     tried = ", ".join(f"×{f:.3g} {s:.5f}" for f, s in zip(factors, scores, strict=True))
     record = StageRecord(
-        "rate", cfg.data.start_frame + n, cfg.global_ba.rate_check_steps * len(factors), min(scores),
+        "rate", cfg.data.start_frame + n, gcfg.rate_check_steps * len(factors) * len(seeds), min(scores),
         time.perf_counter() - t0, 0, False, len(state.gaussians), note=f"speed ×{best:.4f} (scores {tried})",
     )  # fmt: skip
     state.history.append(record)
