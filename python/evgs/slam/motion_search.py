@@ -187,18 +187,18 @@ def fit(
     gives them other streams."""
     cfg, data = state.cfg, state.data
     m = len(knots) - 1
-    seed = cfg.seed if seed is None else seed
+    stream = stage_seed(cfg.seed if seed is None else seed, stage, m)
     trial = dataclasses.replace(
         state,
         traj=Trajectory(data.frames_us[: m + 1], knots, cfg.trajectory.interpolation),
         gaussians=type(state.gaussians).from_state(state.gaussians.state()),
-        generator=torch.Generator().manual_seed(stage_seed(seed, stage, m)),
+        generator=torch.Generator().manual_seed(stream),
         history=[],
     )
     steps = cfg.init.search_steps if steps is None else steps
     smooth = cfg.init.search_smooth if smooth is None else smooth
     spec = StageSpec(
-        stage, m, steps, data.span(0, m), cfg.data.training_batch_size, stage_seed(seed, stage, m), [],
+        stage, m, steps, data.span(0, m), cfg.data.training_batch_size, stream, [],
         range(m + 1), train_gaussians=True, lr_boost=cfg.init.lr_boost, adaptive=not smooth,
     )  # fmt: skip
     run_stage(trial, spec, reporter)

@@ -76,12 +76,12 @@ def check_rate(state: SlamState, seeded: Gaussians, reporter: StageReporter | No
     factors = rate_factors(gcfg.rate_check)
     seed, span = stage_seed(cfg.seed, "rate", 0), data.span(0, n)
     seeds = [replica_seed(cfg.seed, j) for j in range(gcfg.rate_check_seedings)]
-    starts = [seeded] + [seeded_map(state, torch.Generator().manual_seed(s)) for s in seeds[1:]]
+    maps = [seeded] + [seeded_map(state, torch.Generator().manual_seed(s)) for s in seeds[1:]]
+    starts = [dataclasses.replace(state, gaussians=g) for g in maps]
     scores = []
     for f in factors:
-        replicas = []
-        for s, gaussians in zip(seeds, starts, strict=True):
-            start, motion = dataclasses.replace(state, gaussians=gaussians), scaled_motion(knots, float(f))
+        motion, replicas = scaled_motion(knots, float(f)), []
+        for s, start in zip(seeds, starts, strict=True):
             trial = fit(start, motion, reporter, gcfg.rate_check_steps, True, "rate", s)
             with torch.no_grad():
                 replicas.append(fixed_window_loss(trial, span, seed, SCORE_WINDOWS))
