@@ -31,6 +31,9 @@ Options after ``--set`` are config overrides, as for ``evgs run``.
 
 from __future__ import annotations
 
+import evgs  # noqa: F401  first, as in `evgs run`: it pins numpy's and torch's CPU code paths
+
+# isort: split
 import argparse
 import dataclasses
 import time

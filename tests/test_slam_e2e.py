@@ -127,19 +127,39 @@ def test_resume_after_interrupt_matches_uninterrupted(cheap_run: Path, seq_dir: 
     assert (run.root / "gaussians.ply").read_bytes() == (cheap_run / "gaussians.ply").read_bytes()
 
 
+def run_in_subprocess(seq_dir: Path, out: Path, **env: str) -> Path:
+    """The cheap run in a fresh ``python -m evgs`` with ``env`` added to this process's environment."""
+    args = [sys.executable, "-m", "evgs", "run", "--seq", str(seq_dir), "--config", "synthetic/tiny",
+            "--out", str(out), "--quiet"]  # fmt: skip
+    for s in (*SETS, *CHEAP):
+        args += ["--set", s]
+    subprocess.run(args, env=os.environ | env, check=True, cwd=Path(__file__).parents[1])
+    (run,) = (out / "synth").iterdir()
+    return run
+
+
+def assert_same_run(run: Path, reference: Path) -> None:
+    assert (run / "traj_est.txt").read_bytes() == (reference / "traj_est.txt").read_bytes()
+    assert (run / "gaussians.ply").read_bytes() == (reference / "gaussians.ply").read_bytes()
+
+
 def test_a_run_repeats_bitwise_on_one_thread(cheap_run: Path, seq_dir: Path, tmp_path: Path):
     """One Rust and one torch thread in a fresh process against this process's defaults: the run pins
     torch's thread count (``torch_threads``) and the Rust core is invariant to its own."""
-    args = [sys.executable, "-m", "evgs", "run", "--seq", str(seq_dir), "--config", "synthetic/tiny",
-            "--out", str(tmp_path), "--quiet"]  # fmt: skip
-    for s in (*SETS, *CHEAP):
-        args += ["--set", s]
-    env = os.environ | {"RAYON_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    subprocess.run(args, env=env, check=True, cwd=Path(__file__).parents[1])
-    (run,) = (tmp_path / "synth").iterdir()
-    assert (run / "traj_est.txt").read_bytes() == (cheap_run / "traj_est.txt").read_bytes()
-    assert (run / "gaussians.ply").read_bytes() == (cheap_run / "gaussians.ply").read_bytes()
+    run = run_in_subprocess(
+        seq_dir, tmp_path, RAYON_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1"
+    )
+    assert_same_run(run, cheap_run)
     assert json.loads((run / "metrics.json").read_text())["torch_threads"] == 2  # the config's, not the env's
+
+
+def test_a_run_repeats_bitwise_with_another_cpus_mkl(cheap_run: Path, seq_dir: Path, tmp_path: Path):
+    """MKL held to the AVX2 instructions, as a CPU without AVX-512 would run it: the pinned code paths
+    (evgs/cpu_dispatch.py) give the same bits. Unpinned, MKL's choice alone moves this run on an AVX-512
+    CPU (docs/ablations.md §92)."""
+    run = run_in_subprocess(seq_dir, tmp_path, MKL_ENABLE_INSTRUCTIONS="AVX2")
+    assert_same_run(run, cheap_run)
+    assert json.loads((run / "metrics.json").read_text())["cpu_dispatch"]["torch_cpu_capability"] == "AVX2"
 
 
 def test_missing_seenic_sequence_says_what_to_download(tmp_path: Path, monkeypatch, capsys):

@@ -21,6 +21,7 @@ from functools import partial
 
 import torch
 
+from evgs import cpu_dispatch
 from evgs.config import Config
 from evgs.eval.plots import plot_range_agreement
 from evgs.slam import checkpoint
@@ -161,6 +162,8 @@ def run_slam(
     Pins torch's threads for the process (:func:`pin_threads`), fresh or resumed."""
     cfg, n_chunks = state.cfg, state.data.n_chunks
     pin_threads(cfg)
+    if (why := cpu_dispatch.unpinned()) is not None:
+        say(run, log, f"warning: {why}")
 
     def note(record: StageRecord) -> None:
         say(run, log, describe(record))

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from evgs import cpu_dispatch
 from evgs.config import Config, config_from_snapshot, save_config
 from evgs.data.tum import write_tum
 from evgs.eval.run import evaluate_run, read_run_config, resolve_sequence
@@ -119,6 +120,7 @@ def pipeline_metrics(state: SlamState) -> dict:
         "iterations": sum(r.iterations for r in h),
         "seconds": sum(r.seconds for r in h),
         "torch_threads": torch.get_num_threads(),  # the count the seconds (and the bits) came from
+        "cpu_dispatch": cpu_dispatch.in_effect(),  # and the CPU code paths
         "events_processed": sum(r.events for r in h),
         "stopped_early_stages": sum(r.stopped_early for r in h),
         "pruned_blockers": sum(r.pruned_blockers for r in h),
