@@ -6,12 +6,13 @@ OpenBLAS's SkylakeX kernels. Each gives other last bits than the AVX2 path, and 
 last bit into another trajectory: the tiny sequence's ATE moved from 0.126 to 0.085 by MKL's choice alone,
 and swirl_good's seeds drew other motions on an Intel Xeon than on an AMD EPYC (docs/ablations.md §86, §92).
 The Rust core is built for x86-64-v3 (AVX2, FMA) and never dispatches, so pinning the libraries to the same
-level makes a run's bits those of any x86-64-v3 machine, Intel or AMD, as the thread pins
-(``torch_threads``) make them those of any core count. On this project's runs the pins cost no measurable
-time: the hot loops are the Rust core's.
+level runs the same instructions on any x86-64-v3 machine, Intel or AMD, as the thread pins
+(``torch_threads``) make the bits those of any core count (checked so far on one CPU, with MKL held to
+AVX2 as a CPU without AVX-512 would run it). On this project's runs the pins cost no measurable time:
+the hot loops are the Rust core's.
 
-:func:`pin` must run before numpy or torch is imported; ``import evgs`` calls it first thing. Each pin is
-a default: a variable already set in the environment wins.
+:func:`pin` must run before numpy is imported and before torch's first operation; ``import evgs``
+calls it first thing. Each pin is a default: a variable already set in the environment wins.
 """
 
 from __future__ import annotations
