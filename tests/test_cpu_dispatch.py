@@ -6,18 +6,17 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-from evgs.cpu_dispatch import PINS
+from evgs.cpu_dispatch import PINS, X86_64
 
-pytestmark = pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64"), reason="x86-64 pins")
+pytestmark = pytest.mark.skipif(not X86_64, reason="x86-64 pins")
 
 PROBE = """
-import json, os, sys
+import json, os
 {first}
 import numpy as np
 from evgs import cpu_dispatch
