@@ -11,6 +11,7 @@ import torch
 pytest.importorskip("evgs.render")
 
 from evgs.config import ConfigError, load_config  # noqa: E402
+from evgs.slam import rate_check  # noqa: E402
 from evgs.slam.lie import se3_exp, se3_inverse, se3_log  # noqa: E402
 from evgs.slam.motion_search import fit  # noqa: E402
 from evgs.slam.optimize import fixed_window_loss  # noqa: E402
@@ -128,3 +129,24 @@ def test_each_speed_scores_the_mean_of_its_seedings_refits(tmp_path):
 def test_the_rate_check_needs_at_least_one_seeding():
     with pytest.raises(ConfigError, match="rate_check_seedings >= 1"):
         load_config(overrides=["global_ba.rate_check_seedings=0"])
+
+
+def test_the_refits_carry_their_own_relief_prior(tmp_path, monkeypatch):
+    """``global_ba.rate_check_depth_tv`` >= 0 is ``loss.depth_tv`` in the rate check's refits alone (the
+    run keeps its own); < 0 leaves the refits the run's."""
+    seq, scene = make_sequence(tmp_path / "synth")
+    seen = []
+
+    def fake_fit(state, knots, reporter, steps, smooth, stage, seed):
+        seen.append(state.cfg.loss.depth_tv)
+        return state
+
+    monkeypatch.setattr(rate_check, "fit", fake_fit)
+    monkeypatch.setattr(rate_check, "fixed_window_loss", lambda *args: 1.0)
+    sets = ["global_ba.rate_check=0.2", "loss.depth_tv=0.5"]
+    for extra, want in (("global_ba.rate_check_depth_tv=0", 0.0), ("global_ba.rate_check_depth_tv=-1", 0.5)):
+        seen.clear()
+        state = search_state(seq, *sets, extra)
+        state.traj = Trajectory(scene.frames_us, torch.as_tensor(scene.poses))
+        check_rate(state, seeded_map(state))
+        assert seen == [want] * 5 and state.cfg.loss.depth_tv == 0.5

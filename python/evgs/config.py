@@ -127,6 +127,7 @@ class GlobalBAConfig:
     rate_check: float
     rate_check_steps: int
     rate_check_seedings: int
+    rate_check_depth_tv: float
     final_hold_positions: bool
 
 

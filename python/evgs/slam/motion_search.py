@@ -355,10 +355,7 @@ def search_motion(state: SlamState, reporter: StageReporter | None = None) -> Se
     ranked = sorted(trial.tried, key=lambda hs: hs[1])
     # The finalists refitted longer: their ranking among themselves is the longer refits', and the
     # rest keep theirs behind them (the two scores are not comparable with each other).
-    k, final_state = cfg.search_finalists, state
-    if cfg.search_final_depth_tv >= 0:
-        loss = dataclasses.replace(state.cfg.loss, depth_tv=cfg.search_final_depth_tv)
-        final_state = dataclasses.replace(state, cfg=dataclasses.replace(state.cfg, loss=loss))
+    k, final_state = cfg.search_finalists, state.with_relief_prior(cfg.search_final_depth_tv)
     finals = sorted(
         ((h, score(final_state, h, reporter, cfg.search_final_steps)) for h, _ in ranked[:k]),
         key=lambda hs: hs[1],

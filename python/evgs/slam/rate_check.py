@@ -77,7 +77,8 @@ def check_rate(state: SlamState, seeded: Gaussians, reporter: StageReporter | No
     seed, span = stage_seed(cfg.seed, "rate", 0), data.span(0, n)
     seeds = [replica_seed(cfg.seed, j) for j in range(gcfg.rate_check_seedings)]
     maps = [seeded] + [seeded_map(state, torch.Generator().manual_seed(s)) for s in seeds[1:]]
-    starts = [dataclasses.replace(state, gaussians=g) for g in maps]
+    scoring = state.with_relief_prior(gcfg.rate_check_depth_tv)
+    starts = [dataclasses.replace(scoring, gaussians=g) for g in maps]
     scores = []
     for f in factors:
         motion, replicas = scaled_motion(knots, float(f)), []

@@ -7,6 +7,7 @@ continuation of a run identical to an uninterrupted one.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -73,6 +74,15 @@ class SlamState:
     surface_scale: ScaleEstimate | None = None  # the first-surface scale read before the final global BA
     branch: str = ""  # a branch of the run's start (evgs.slam.branches) names its diagnostics; "" = the run
     seeding: int = 0  # whose draws seeded the map: 0 the run's own, j > 0 restart j's (evgs.slam.seeding)
+
+    def with_relief_prior(self, depth_tv: float) -> SlamState:
+        """This state with ``loss.depth_tv`` = ``depth_tv`` when that is >= 0, else this state itself: a
+        stage's refits under their own relief prior, which bends a speed's score (docs/ablations.md
+        §78, §93)."""
+        if depth_tv < 0:
+            return self
+        loss = dataclasses.replace(self.cfg.loss, depth_tv=depth_tv)
+        return dataclasses.replace(self, cfg=dataclasses.replace(self.cfg, loss=loss))
 
     def num_init_chunks(self) -> int:
         """``m``: chunks of the initialization (fewer when the sequence is shorter)."""
