@@ -240,14 +240,15 @@ def test_the_first_surface_read_before_the_final_ba_is_the_one_applied(synth):
 
 
 class SeeFinalBA:
-    """A reporter that notes the state's first-surface read when the final global BA begins."""
+    """A reporter that notes the state's first-surface read and relief prior when the final global BA
+    begins."""
 
     def __init__(self):
         self.read_at_final = "not reached"
 
     def advance(self, state, spec, it, loss, events, seconds) -> None:
         if spec.stage == "final" and self.read_at_final == "not reached":
-            self.read_at_final = state.surface_scale
+            self.read_at_final, self.depth_tv_at_final = state.surface_scale, state.cfg.loss.depth_tv
 
     def stage_end(self, state, spec, record) -> None:
         pass
@@ -289,6 +290,19 @@ def test_a_run_told_to_read_the_surface_at_the_end_applies_the_finished_map(synt
     assert state.metric["metric_scale_source"] == "range, first surface"
     assert state.metric["metric_scale"] == pytest.approx(expected.scale, rel=1e-12)
     assert expected.scale == pytest.approx(TRUE_SCALE, rel=0.02)
+
+
+def test_the_final_ba_runs_under_its_own_relief_prior(synth, tmp_path):
+    """``global_ba.final_depth_tv`` >= 0 is ``loss.depth_tv`` in the final global BA alone, whose edits
+    to the map reach the run; < 0 leaves it the run's."""
+    before = state_in_map_units(synth)[0].gaussians.state()["means"]
+    for final_tv, want in ((0.0, 0.0), (-1.0, 0.5)):
+        sets = ["loss.depth_tv=0.5", f"global_ba.final_depth_tv={final_tv}", "scale.surface_read=end"]
+        state, run, seen = finish_a_run(synth, tmp_path / str(final_tv), *sets)
+        assert seen.depth_tv_at_final == want and state.cfg.loss.depth_tv == 0.5
+        assert state.history[-1].stage == "final"
+        finished = checkpoint.load(run.checkpoint_path)["gaussians"]["means"]  # map units
+        assert finished.shape != before.shape or (finished - before).abs().max() > 1e-4
 
 
 def flat_gaussian(depth: float, opacity: float, lateral: float = 0.0) -> dict[str, list]:

@@ -128,6 +128,7 @@ class GlobalBAConfig:
     rate_check_steps: int
     rate_check_seedings: int
     rate_check_depth_tv: float
+    final_depth_tv: float
     final_hold_positions: bool
 
 

@@ -199,7 +199,10 @@ def run_slam(
                 ends = f", ends extended by a fit over {fit:g} τ" if fit else ""
                 say(run, log, f"smoothed the tracked positions (τ = {tau:g} s, order {order}{ends}): "
                               f"moved {moved:.4f} at most")  # fmt: skip
-            note(global_ba(state, final=True, reporter=reporter))
+            # Under its own relief prior if the config says so: the copy shares the map and the
+            # trajectory, which the stage edits in place.
+            final = state.with_relief_prior(cfg.global_ba.final_depth_tv)
+            note(global_ba(final, final=True, reporter=reporter))
             state.position.finished = True
             boundary(force=True)
     except KeyboardInterrupt:
