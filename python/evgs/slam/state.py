@@ -7,8 +7,7 @@ continuation of a run identical to an uninterrupted one.
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -81,8 +80,7 @@ class SlamState:
         §78, §93)."""
         if depth_tv < 0:
             return self
-        loss = dataclasses.replace(self.cfg.loss, depth_tv=depth_tv)
-        return dataclasses.replace(self, cfg=dataclasses.replace(self.cfg, loss=loss))
+        return replace(self, cfg=replace(self.cfg, loss=replace(self.cfg.loss, depth_tv=depth_tv)))
 
     def num_init_chunks(self) -> int:
         """``m``: chunks of the initialization (fewer when the sequence is shorter)."""
