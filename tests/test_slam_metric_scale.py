@@ -244,7 +244,7 @@ class SeeFinalBA:
     begins."""
 
     def __init__(self):
-        self.read_at_final = "not reached"
+        self.read_at_final, self.depth_tv_at_final = "not reached", None
 
     def advance(self, state, spec, it, loss, events, seconds) -> None:
         if spec.stage == "final" and self.read_at_final == "not reached":
